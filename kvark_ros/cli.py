@@ -1,0 +1,42 @@
+"""The ``kvark`` command: one entry point, one sub-command per job."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from kvark_ros import __version__
+from kvark_ros.core.config import ConfigError
+from kvark_ros.core.residual_model import ResidualModelError
+from kvark_ros.core.robot_model import RobotModelError
+from kvark_ros.tools import bench
+
+USER_ERRORS = (ConfigError, ResidualModelError, RobotModelError, FileNotFoundError)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="kvark", description="Sensorless external torque and wrench estimation (K-VARK) for robot arms.")
+    parser.add_argument("--version", action="version", version=f"kvark_ros {__version__}")
+    subparsers = parser.add_subparsers(title="commands", metavar="COMMAND")
+    bench.add_parser(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not hasattr(args, "run"):
+        parser.print_help()
+        return 2
+    try:
+        return args.run(args)
+    except USER_ERRORS as exc:
+        print(f"kvark: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("kvark: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

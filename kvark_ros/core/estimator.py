@@ -1,0 +1,123 @@
+"""The estimator: robot model + observer, one call per sample.
+
+The same object runs behind the ROS node and the bag replay, so live and offline results
+are identical for identical inputs.
+"""
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from kvark_ros.core.config import EstimatorConfig
+from kvark_ros.core.model_store import TrainedModel, load_model
+from kvark_ros.core.observers import Observer, make_observer
+from kvark_ros.core.robot_model import RobotModel
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One output sample; torque acting on the robot (DESIGN §1).
+
+    tau_ext: (n,) N·m; tau_cov: (n, n) N²·m²; wrench: (6,) [N, N·m] at the end-effector frame
+    origin, axes of ``wrench_frame``; wrench_cov: (6, 6).
+    """
+
+    stamp: float
+    tau_ext: np.ndarray
+    tau_cov: np.ndarray
+    wrench: np.ndarray
+    wrench_cov: np.ndarray
+
+
+class Status:
+    """Outcome of the last ``Estimator.step``; also the keys of ``Estimator.counts``."""
+
+    OK = "ok"
+    WARMUP = "warm-up: first sample after start or reset"
+    BAD_SHAPE = "rejected: q, qd or tau_m has the wrong length"
+    NON_FINITE = "rejected: NaN or Inf in q, qd or tau_m"
+    STAMP_NOT_INCREASING = "rejected: stamp not after the previous sample (out of order or duplicate)"
+    GAP_RESET = "reset: gap between samples longer than input.max_gap"
+    DIVERGED_RESET = "reset: filter produced a non-finite estimate"
+
+
+class Estimator:
+    """Steps an observer on (stamp, q, q̇, τ_m) samples and maps τ_ext to a wrench.
+
+    Bad samples never reach the filter: they are rejected (``step`` returns ``None``), counted
+    in ``counts`` and described by ``status``. The output is always finite.
+    """
+
+    def __init__(self, config: EstimatorConfig, robot: RobotModel, observer: Observer) -> None:
+        if robot.joint_names != config.joint_names or observer.n != robot.n:
+            raise ValueError("robot model, observer and config must have the same joints")
+        self.config = config
+        self.robot = robot
+        self.observer = observer
+        self.counts: Counter[str] = Counter()
+        self.status = Status.WARMUP
+        self.reset()
+
+    @classmethod
+    def from_config(cls, config: EstimatorConfig, trained: TrainedModel | None = None,
+                    observer: str | None = None, urdf: str | None = None) -> "Estimator":
+        """Build robot model and observer from the config; ``trained`` defaults to ``config.model_dir``.
+
+        ``urdf`` overrides ``config.urdf`` (the node passes the ``robot_description`` string).
+        """
+        robot = RobotModel(urdf or config.urdf, config.joint_names, config.ee_frame,
+                           config.flange_frame, config.payload)
+        trained = trained or load_model(config.model_dir, config.joint_names)
+        return cls(config, robot, make_observer(observer or config.observer, trained.residual,
+                                                trained.tuning, config))
+
+    def reset(self) -> None:
+        """Restart from the next sample (filter state and previous sample forgotten)."""
+        self.observer.reset()
+        self._stamp: float | None = None
+        self._p_prev = np.zeros(self.robot.n)
+        self._u_prev = np.zeros(self.robot.n)
+
+    def _reject(self, status: str) -> None:
+        self.status = status
+        self.counts[status] += 1
+
+    def step(self, stamp: float, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> Estimate | None:
+        """Process one sample (arrays in ``config.joint_names`` order). ``None`` while warming up or on rejection."""
+        n = self.robot.n
+        if q.shape != (n,) or qd.shape != (n,) or tau_m.shape != (n,):
+            self._reject(Status.BAD_SHAPE)
+            return None
+        if not (np.isfinite(stamp) and np.isfinite(q).all() and np.isfinite(qd).all()
+                and np.isfinite(tau_m).all()):
+            self._reject(Status.NON_FINITE)
+            return None
+        previous = self._stamp
+        gap_reset = False
+        if previous is not None:
+            if stamp <= previous:
+                self._reject(Status.STAMP_NOT_INCREASING)
+                return None
+            if stamp - previous > self.config.max_gap:
+                self.reset()
+                self._reject(Status.GAP_RESET)
+                previous, gap_reset = None, True
+        p, u = self.robot.momentum_terms(q, qd, tau_m)
+        p_prev, u_prev = self._p_prev, self._u_prev
+        self._stamp, self._p_prev, self._u_prev = stamp, p, u
+        if previous is None:
+            if not gap_reset:
+                self._reject(Status.WARMUP)
+            return None
+        tau_ext, tau_cov = self.observer.step(stamp - previous, qd, p, p_prev, u_prev)
+        wrench, wrench_cov = self.robot.wrench_from_torque(q, tau_ext, tau_cov, self.config.wrench_damping,
+                                                           self.config.wrench_frame)
+        if not (np.isfinite(tau_ext).all() and np.isfinite(tau_cov).all() and np.isfinite(wrench_cov).all()):
+            self.reset()
+            self._reject(Status.DIVERGED_RESET)
+            return None
+        self.status = Status.OK
+        self.counts[Status.OK] += 1
+        return Estimate(stamp, tau_ext, tau_cov, wrench, wrench_cov)

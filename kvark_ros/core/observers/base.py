@@ -1,0 +1,76 @@
+"""The interface every external-torque observer implements, and the static filter tuning."""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+
+
+class Observer(ABC):
+    """Estimates τ_ext (n,) N·m and its covariance P (n, n) N²·m² from momentum samples.
+
+    The ``Estimator`` computes the generalized momentum ``p = M q̇`` and its input
+    ``u = Cᵀq̇ − g + τ_m`` (paper v1 eqs. 5-7) once per sample and hands them to the observer,
+    so every observer sees the same inputs.
+    """
+
+    name: str = ""
+    uses_residual_model: bool = False
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+
+    @abstractmethod
+    def reset(self) -> None:
+        """Forget all state, as at start-up."""
+
+    @abstractmethod
+    def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,
+             u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Advance one sample.
+
+        Args:
+            dt: time since the previous sample, s (the actual step, not a nominal one).
+            qd: joint velocity at this sample (n,), rad/s.
+            p, p_prev: generalized momentum now and at the previous sample (n,), N·m·s.
+            u_prev: momentum input at the previous sample (n,), N·m.
+        Returns:
+            ``(tau_ext, P)``: estimate (n,) N·m and covariance (n, n) N²·m². The arrays are
+            not modified afterwards by the observer.
+        """
+
+
+@dataclass(frozen=True)
+class FilterTuning:
+    """Static covariances identified from training data (paper v2 §V-D), torque units, shape (n,).
+
+    process_noise_density: q in ``Σ_d = diag(q)·t_s`` for the random walk of eq. 32, N²·m²/s.
+    measurement_variance: the fixed R of the non-heteroscedastic filter (A1), N²·m².
+    empirical_variance: ``Σ_emp / t_s²`` at start and its upper bound (v2 Remark 2), N²·m².
+    """
+
+    process_noise_density: np.ndarray
+    measurement_variance: np.ndarray
+    empirical_variance: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("process_noise_density", "measurement_variance", "empirical_variance"):
+            value = np.asarray(getattr(self, name), dtype=float)
+            if value.ndim != 1 or not np.all(np.isfinite(value)) or np.any(value <= 0.0):
+                raise ValueError(f"filter tuning '{name}' must be a vector of positive finite numbers, got {value}")
+            object.__setattr__(self, name, value)
+        if not (len(self.process_noise_density) == len(self.measurement_variance) == len(self.empirical_variance)):
+            raise ValueError("filter tuning vectors must all have one entry per joint")
+
+    def to_dict(self) -> dict[str, list[float]]:
+        """Plain lists, for the model's YAML file."""
+        return {"process_noise_density": self.process_noise_density.tolist(),
+                "measurement_variance": self.measurement_variance.tolist(),
+                "empirical_variance": self.empirical_variance.tolist()}
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> "FilterTuning":
+        return cls(**{key: np.asarray(values[key], dtype=float)
+                      for key in ("process_noise_density", "measurement_variance", "empirical_variance")})

@@ -1,0 +1,200 @@
+"""Nominal rigid-body model of the arm (pinocchio), reduced to the estimated joints.
+
+Everything the filters need from the robot lives here: generalized momentum and its input
+(paper v1 eqs. 5-8), inverse dynamics (eq. 27's tau_EL), the frame Jacobian, and the damped
+pseudo-inverse that maps external joint torques to a wrench (paper v2 eq. 39).
+
+Sign convention (DESIGN §1): ``M q̈ + C q̇ + g + τ_f = τ_m + τ_ext`` with ``τ_ext = Jᵀ F_ext``,
+``F_ext`` the wrench the environment applies *to the robot* at the end-effector frame origin.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import pinocchio as pin
+
+from kvark_ros.core.linalg import solve_spd
+
+EXAMPLE_ROBOT_DATA_URDFS = {
+    "panda": "robots/panda_description/urdf/panda.urdf",
+    "ur5": "robots/ur_description/urdf/ur5_robot.urdf",
+}
+EXAMPLE_ROBOT_DATA_PREFIX = "example-robot-data:"
+
+
+class RobotModelError(ValueError):
+    """The URDF, a joint name or a frame name is unusable."""
+
+
+def resolve_urdf(spec: str) -> str:
+    """Return URDF XML from a file path, an XML string, or ``example-robot-data:<robot>``.
+
+    The last form finds the URDF shipped by the ``example-robot-data`` pip package
+    (installed with ``pip install kvark_ros[sim]``).
+    """
+    text = spec.strip()
+    if text.startswith("<"):
+        return text
+    if text.startswith(EXAMPLE_ROBOT_DATA_PREFIX):
+        return Path(_example_robot_data_path(text[len(EXAMPLE_ROBOT_DATA_PREFIX):])).read_text()
+    path = Path(os.path.expanduser(text))
+    if not path.is_file():
+        raise RobotModelError(f"{text}: URDF file not found; set robot_model.urdf to an existing file, "
+                              f"or to {EXAMPLE_ROBOT_DATA_PREFIX}panda / {EXAMPLE_ROBOT_DATA_PREFIX}ur5")
+    return path.read_text()
+
+
+def _example_robot_data_path(robot: str) -> str:
+    """Path of an example-robot-data URDF inside the installed pip distribution."""
+    if robot not in EXAMPLE_ROBOT_DATA_URDFS:
+        raise RobotModelError(f"{EXAMPLE_ROBOT_DATA_PREFIX}{robot}: unknown robot; "
+                              f"known: {', '.join(sorted(EXAMPLE_ROBOT_DATA_URDFS))}")
+    try:
+        dist = metadata.distribution("example-robot-data")
+    except metadata.PackageNotFoundError as exc:
+        raise RobotModelError(f"{EXAMPLE_ROBOT_DATA_PREFIX}{robot}: the example-robot-data package is not "
+                              "installed; run `pip install kvark_ros[sim]` or point robot_model.urdf "
+                              "at a URDF file") from exc
+    suffix = EXAMPLE_ROBOT_DATA_URDFS[robot]
+    for file in dist.files or ():
+        if str(file).endswith(suffix):
+            return str(dist.locate_file(file))
+    raise RobotModelError(f"{EXAMPLE_ROBOT_DATA_PREFIX}{robot}: {suffix} missing from example-robot-data")
+
+
+@dataclass(frozen=True)
+class Payload:
+    """Rigid payload or tool fixed to the flange.
+
+    mass: kg; com: (3,) m in the flange frame; inertia: (6,) kg·m² about the CoM,
+    flange axes, ordered ``[ixx, iyy, izz, ixy, ixz, iyz]``.
+    """
+
+    mass: float
+    com: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    inertia: tuple[float, float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+    def to_pinocchio(self) -> pin.Inertia:
+        """Spatial inertia in the flange frame."""
+        ixx, iyy, izz, ixy, ixz, iyz = self.inertia
+        rot_inertia = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
+        return pin.Inertia(float(self.mass), np.asarray(self.com, dtype=float), rot_inertia)
+
+
+class RobotModel:
+    """Pinocchio model reduced to ``joint_names``; one ``Data`` reused on every call.
+
+    Args:
+        urdf: URDF file path, XML string, or ``example-robot-data:<robot>``.
+        joint_names: the estimated joints, in output order; every other joint is locked at 0.
+        ee_frame: frame whose origin is the wrench reference point (e.g. ``panda_hand_tcp``).
+        flange_frame: frame a payload is attached to (defaults to ``ee_frame``).
+        payload: optional tool/payload added to the nominal model.
+    """
+
+    def __init__(self, urdf: str, joint_names: Sequence[str], ee_frame: str,
+                 flange_frame: str | None = None, payload: Payload | None = None) -> None:
+        try:
+            full = pin.buildModelFromXML(resolve_urdf(urdf))
+        except RuntimeError as exc:
+            raise RobotModelError(f"URDF could not be parsed: {exc}") from exc
+        missing = [name for name in joint_names if not full.existJointName(name)]
+        if missing:
+            raise RobotModelError(f"joints {missing} are not in the URDF; it has "
+                                  f"{[n for n in full.names[1:]]}")
+        locked = [jid for jid in range(1, full.njoints) if full.names[jid] not in joint_names]
+        self.model = pin.buildReducedModel(full, locked, pin.neutral(full)) if locked else full
+        order = [self.model.getJointId(name) for name in joint_names]
+        if any(self.model.joints[jid].nv != 1 for jid in order):
+            raise RobotModelError("only one-degree-of-freedom joints are supported")
+        # Column of each requested joint in pinocchio's v ordering (pinocchio orders by tree).
+        self._index = np.array([self.model.joints[jid].idx_v for jid in order])
+        if not np.array_equal(self._index, np.arange(len(order))):
+            raise RobotModelError("joint_names must follow the kinematic chain order of the URDF: "
+                                  f"{[self.model.names[j] for j in range(1, self.model.njoints)]}")
+        self.joint_names = tuple(joint_names)
+        self.ee_frame_id = self._frame_id(ee_frame)
+        self.flange_frame_id = self._frame_id(flange_frame or ee_frame)
+        self._nominal_inertias = [pin.Inertia(inertia) for inertia in self.model.inertias]
+        self.data = self.model.createData()
+        self._zero = np.zeros(self.model.nv)
+        self._eye6 = np.eye(6)
+        self.payload: Payload | None = None
+        if payload is not None:
+            self.set_payload(payload)
+
+    @property
+    def n(self) -> int:
+        """Number of estimated joints."""
+        return self.model.nv
+
+    def _frame_id(self, name: str) -> int:
+        if not self.model.existFrame(name):
+            raise RobotModelError(f"frame '{name}' is not in the URDF")
+        return self.model.getFrameId(name)
+
+    def set_payload(self, payload: Payload | None) -> None:
+        """Attach (or with ``None`` remove) a payload at the flange; replaces any earlier one."""
+        frame = self.model.frames[self.flange_frame_id]
+        joint = frame.parentJoint
+        self.model.inertias[joint] = pin.Inertia(self._nominal_inertias[joint])
+        if payload is not None:
+            if payload.mass <= 0.0:
+                raise RobotModelError(f"payload mass must be positive, got {payload.mass}")
+            self.model.inertias[joint] = self.model.inertias[joint] + frame.placement.act(payload.to_pinocchio())
+        self.payload = payload
+
+    def mass_matrix(self, q: np.ndarray) -> np.ndarray:
+        """M(q): (n, n) kg·m², symmetric."""
+        pin.crba(self.model, self.data, q)
+        upper = self.data.M
+        return np.triu(upper) + np.triu(upper, 1).T
+
+    def momentum_terms(self, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Generalized momentum and its model input.
+
+        Returns ``p = M(q) q̇`` (eq. 5, N·m·s) and ``u = Cᵀ(q, q̇) q̇ − g(q) + τ_m`` (eq. 7, N·m),
+        so that ``ṗ = u + τ_ext − τ_f`` in our sign convention.
+        """
+        gravity = pin.computeGeneralizedGravity(self.model, self.data, q).copy()
+        # rnea(q, 0, q̇) = M q̇ + g: one O(n) pass instead of forming M.
+        p = pin.rnea(self.model, self.data, q, self._zero, qd) - gravity    # eq. 5
+        coriolis = pin.computeCoriolisMatrix(self.model, self.data, q, qd)
+        u = coriolis.T @ qd - gravity + tau_m                               # eq. 7
+        return p, u
+
+    def inverse_dynamics(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
+        """τ_EL = M q̈ + C q̇ + g (eq. 27), N·m."""
+        return pin.rnea(self.model, self.data, q, qd, qdd).copy()
+
+    def forward_dynamics(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> np.ndarray:
+        """q̈ from the articulated-body algorithm, rad/s²."""
+        return pin.aba(self.model, self.data, q, qd, tau).copy()
+
+    def jacobian(self, q: np.ndarray, frame: str = "base") -> np.ndarray:
+        """(6, n) Jacobian of the end-effector frame origin: linear rows first.
+
+        ``frame="base"`` expresses it in base axes (LOCAL_WORLD_ALIGNED), ``"end_effector"`` in the
+        end-effector axes (LOCAL). Either way ``τ_ext = Jᵀ F`` for ``F`` expressed in the same axes.
+        """
+        reference = pin.LOCAL_WORLD_ALIGNED if frame == "base" else pin.LOCAL
+        return pin.computeFrameJacobian(self.model, self.data, q, self.ee_frame_id, reference)
+
+    def wrench_from_torque(self, q: np.ndarray, tau_ext: np.ndarray, tau_cov: np.ndarray,
+                           damping: float, frame: str = "base") -> tuple[np.ndarray, np.ndarray]:
+        """External wrench and its covariance from external joint torques.
+
+        ``F = (J Jᵀ + δ² I)⁻¹ J τ_ext`` (paper v2 eq. 39) and ``Σ_F = J⁺ P J⁺ᵀ`` with
+        ``J⁺ = (J Jᵀ + δ² I)⁻¹ J``. F: (6,) [N, N·m]; Σ_F: (6, 6).
+        """
+        jac = self.jacobian(q, frame)
+        damped = jac @ jac.T + (damping * damping) * self._eye6
+        pinv = solve_spd(damped, jac)                                     # eq. 39: J⁺ (6, n)
+        wrench = pinv @ tau_ext
+        wrench_cov = pinv @ tau_cov @ pinv.T
+        return wrench, 0.5 * (wrench_cov + wrench_cov.T)

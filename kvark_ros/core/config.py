@@ -109,7 +109,7 @@ _SCHEMA: dict[str, tuple[Callable, str, Any]] = {
     "filter.vb_iterations": (*_integer(1, 50), 3),
     "filter.vb_forgetting": (*_number(0.0, 1.0, low_open=True), 0.999),
     "filter.vb_variant": (*_choice(VB_VARIANTS), "paper"),
-    "filter.huang_tau": (*_number(0.0, 1e6, low_open=True), 3.0),
+    "filter.huang_tau": (*_number(0.0, 1e6, low_open=True), 300.0),
     "filter.ewma_rate": (*_number(0.0, 1.0, low_open=True), 0.01),
     "filter.nis_rate": (*_number(0.0, 1.0, low_open=True), 0.01),
     "input.max_gap": (*_number(0.0, 10.0, low_open=True), 0.05),

@@ -1,0 +1,1 @@
+"""ROS 2 bag input/output (rosbags only, no rclpy)."""

@@ -90,8 +90,8 @@ class Estimator:
         if q.shape != (n,) or qd.shape != (n,) or tau_m.shape != (n,):
             self._reject(Status.BAD_SHAPE)
             return None
-        if not (np.isfinite(stamp) and np.isfinite(q).all() and np.isfinite(qd).all()
-                and np.isfinite(tau_m).all()):
+        # One reduction instead of three isfinite passes: NaN or Inf anywhere makes the sum non-finite.
+        if not np.isfinite(stamp + q @ q + qd @ qd + tau_m @ tau_m):
             self._reject(Status.NON_FINITE)
             return None
         previous = self._stamp
@@ -114,7 +114,7 @@ class Estimator:
         tau_ext, tau_cov = self.observer.step(stamp - previous, qd, p, p_prev, u_prev)
         wrench, wrench_cov = self.robot.wrench_from_torque(q, tau_ext, tau_cov, self.config.wrench_damping,
                                                            self.config.wrench_frame)
-        if not (np.isfinite(tau_ext).all() and np.isfinite(tau_cov).all() and np.isfinite(wrench_cov).all()):
+        if not np.isfinite(tau_ext.sum() + tau_cov.sum() + wrench_cov.sum()):
             self.reset()
             self._reject(Status.DIVERGED_RESET)
             return None

@@ -59,17 +59,16 @@ def kalman_update(x_pred: np.ndarray, P_pred: np.ndarray, r: np.ndarray,
                   R: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Measurement update with H = I and diagonal R (n,).
 
-    Returns the posterior ``x`` (n,), ``P`` (n, n) in Joseph form, and ``S⁻¹ r`` for NIS.
+    Returns the posterior ``x`` (n,), ``P`` (n, n) in Joseph form, and the gain ``K`` (n, n).
     """
     n = len(r)
     S = P_pred.copy()
     S.flat[:: n + 1] += R                                               # S = H P Hᵀ + R
-    solved = solve_spd(S, np.concatenate((P_pred, r[:, None]), axis=1))
-    K = solved[:, :n].T                                                 # eq. 43: K = P Hᵀ S⁻¹
+    K = solve_spd(S, P_pred).T                                          # eq. 43: K = P Hᵀ S⁻¹ (P, S symmetric)
     x = x_pred + K @ r                                                  # eq. 44
     I_K = _identity(n) - K
     P = I_K @ P_pred @ I_K.T + (K * R) @ K.T                            # eq. 45, Joseph form
-    return x, 0.5 * (P + P.T), solved[:, n]
+    return x, 0.5 * (P + P.T), K
 
 
 @functools.lru_cache(maxsize=8)
@@ -140,9 +139,10 @@ class KVARKFilter(Observer):
             process = process * self.nis_mean / self.n                 # A4: Σ_d = α Σ_d0, α from NIS
         P_pred = self.P.copy()
         P_pred.flat[:: self.n + 1] += process                          # eq. 42
-        self.x, self.P, s_inv_r = kalman_update(x_pred, P_pred, r, R)
+        self.x, self.P, K = kalman_update(x_pred, P_pred, r, R)
         if variant.nis:
-            nis = float(r @ s_inv_r)                                    # normalised innovation squared
+            # normalised innovation squared rᵀ S⁻¹ r, with S⁻¹ = P_pred⁻¹ K from eq. 43
+            nis = float(r @ solve_spd(P_pred, K @ r))
             self.nis_mean += self.config.nis_rate * (nis - self.nis_mean)
             self.nis_mean = float(np.clip(self.nis_mean, self.n * NIS_SCALE_BOUNDS[0],
                                           self.n * NIS_SCALE_BOUNDS[1]))

@@ -21,14 +21,15 @@ class Estimate:
     """One output sample; torque acting on the robot (DESIGN §1).
 
     tau_ext: (n,) N·m; tau_cov: (n, n) N²·m²; wrench: (6,) [N, N·m] at the end-effector frame
-    origin, axes of ``wrench_frame``; wrench_cov: (6, 6).
+    origin, axes of ``wrench_frame``; wrench_cov: (6, 6). The covariances are ``None`` for
+    observers that report no uncertainty.
     """
 
     stamp: float
     tau_ext: np.ndarray
-    tau_cov: np.ndarray
+    tau_cov: np.ndarray | None
     wrench: np.ndarray
-    wrench_cov: np.ndarray
+    wrench_cov: np.ndarray | None
 
 
 class Status:
@@ -114,7 +115,8 @@ class Estimator:
         tau_ext, tau_cov = self.observer.step(stamp - previous, qd, p, p_prev, u_prev)
         wrench, wrench_cov = self.robot.wrench_from_torque(q, tau_ext, tau_cov, self.config.wrench_damping,
                                                            self.config.wrench_frame)
-        if not np.isfinite(tau_ext.sum() + tau_cov.sum() + wrench_cov.sum()):
+        total = tau_ext.sum() + (0.0 if tau_cov is None else tau_cov.sum() + wrench_cov.sum())
+        if not np.isfinite(total):
             self.reset()
             self._reject(Status.DIVERGED_RESET)
             return None

@@ -185,16 +185,18 @@ class RobotModel:
         reference = pin.LOCAL_WORLD_ALIGNED if frame == "base" else pin.LOCAL
         return pin.computeFrameJacobian(self.model, self.data, q, self.ee_frame_id, reference)
 
-    def wrench_from_torque(self, q: np.ndarray, tau_ext: np.ndarray, tau_cov: np.ndarray,
-                           damping: float, frame: str = "base") -> tuple[np.ndarray, np.ndarray]:
+    def wrench_from_torque(self, q: np.ndarray, tau_ext: np.ndarray, tau_cov: np.ndarray | None,
+                           damping: float, frame: str = "base") -> tuple[np.ndarray, np.ndarray | None]:
         """External wrench and its covariance from external joint torques.
 
         ``F = (J Jᵀ + δ² I)⁻¹ J τ_ext`` (paper v2 eq. 39) and ``Σ_F = J⁺ P J⁺ᵀ`` with
-        ``J⁺ = (J Jᵀ + δ² I)⁻¹ J``. F: (6,) [N, N·m]; Σ_F: (6, 6).
+        ``J⁺ = (J Jᵀ + δ² I)⁻¹ J``. F: (6,) [N, N·m]; Σ_F: (6, 6), ``None`` when ``tau_cov`` is.
         """
         jac = self.jacobian(q, frame)
         damped = jac @ jac.T + (damping * damping) * self._eye6
         pinv = solve_spd(damped, jac)                                     # eq. 39: J⁺ (6, n)
         wrench = pinv @ tau_ext
+        if tau_cov is None:
+            return wrench, None
         wrench_cov = pinv @ tau_cov @ pinv.T
         return wrench, 0.5 * (wrench_cov + wrench_cov.T)

@@ -18,6 +18,7 @@ class Observer(ABC):
 
     name: str = ""
     uses_residual_model: bool = False
+    reports_covariance: bool = True     # False: step returns P = None (e.g. the momentum observer)
 
     def __init__(self, n: int) -> None:
         self.n = n
@@ -28,7 +29,7 @@ class Observer(ABC):
 
     @abstractmethod
     def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,
-             u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+             u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Advance one sample.
 
         Args:
@@ -37,8 +38,9 @@ class Observer(ABC):
             p, p_prev: generalized momentum now and at the previous sample (n,), N·m·s.
             u_prev: momentum input at the previous sample (n,), N·m.
         Returns:
-            ``(tau_ext, P)``: estimate (n,) N·m and covariance (n, n) N²·m². The arrays are
-            not modified afterwards by the observer.
+            ``(tau_ext, P)``: estimate (n,) N·m and covariance (n, n) N²·m², or ``None`` for
+            observers that report no uncertainty. The arrays are not modified afterwards by the
+            observer.
         """
 
 

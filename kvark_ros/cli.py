@@ -8,9 +8,10 @@ from kvark_ros import __version__
 from kvark_ros.core.config import ConfigError
 from kvark_ros.core.residual_model import ResidualModelError
 from kvark_ros.core.robot_model import RobotModelError
-from kvark_ros.tools import bench
+from kvark_ros.io.bag import BagError
+from kvark_ros.tools import bench, benchmark, replay, train
 
-USER_ERRORS = (ConfigError, ResidualModelError, RobotModelError, FileNotFoundError)
+USER_ERRORS = (ConfigError, ResidualModelError, RobotModelError, BagError, FileNotFoundError)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -18,6 +19,16 @@ def build_parser() -> argparse.ArgumentParser:
         prog="kvark", description="Sensorless external torque and wrench estimation (K-VARK) for robot arms.")
     parser.add_argument("--version", action="version", version=f"kvark_ros {__version__}")
     subparsers = parser.add_subparsers(title="commands", metavar="COMMAND")
+    try:
+        from kvark_ros.sim.cli import add_simulate_parser
+    except ImportError:          # the simulator needs the [sim] extra (mujoco)
+        pass
+    else:
+        simulate = add_simulate_parser(subparsers)
+        simulate.set_defaults(run=simulate.get_default("func"))
+    train.add_parser(subparsers)
+    replay.add_parser(subparsers)
+    benchmark.add_parser(subparsers)
     bench.add_parser(subparsers)
     return parser
 

@@ -29,30 +29,37 @@ def test_wrench_of_a_step_torque_matches_the_pseudo_inverse(estimator, panda):
     assert estimator.counts[Status.OK] == len(stream.stamp) - 1
 
 
-def test_bad_samples_are_rejected_and_never_reach_the_filter(estimator):
-    q, qd, tau = np.array([0, -0.5, 0, -2, 0, 1.5, 0.8]), np.zeros(7), np.zeros(7)
-    assert estimator.step(0.0, q, qd, tau) is None and estimator.status == Status.WARMUP
-    assert estimator.step(0.002, q, qd, tau) is not None
-    state = estimator.observer.x.copy()
+def test_bad_samples_are_rejected_and_never_reach_the_filter(panda_config, panda_trained):
+    """Bad samples in between leave the estimates exactly as without them."""
+    clean = Estimator.from_config(panda_config, panda_trained)
+    dirty = Estimator.from_config(panda_config, panda_trained)
+    q, qd, tau = np.array([0, -0.5, 0, -2, 0, 1.5, 0.8]), np.full(7, 0.1), np.ones(7)
+    assert dirty.step(0.0, q, qd, tau) is None and dirty.status == Status.WARMUP
+    clean.step(0.0, q, qd, tau)
+    assert np.array_equal(dirty.step(0.002, q, qd, tau).tau_ext, clean.step(0.002, q, qd, tau).tau_ext)
     bad = np.array(q)
     bad[3] = np.nan
-    assert estimator.step(0.004, bad, qd, tau) is None and estimator.status == Status.NON_FINITE
-    assert estimator.step(0.004, q, qd, np.full(7, np.inf)) is None
-    assert estimator.step(0.002, q, qd, tau) is None and estimator.status == Status.STAMP_NOT_INCREASING
-    assert estimator.step(0.004, q[:6], qd, tau) is None and estimator.status == Status.BAD_SHAPE
-    assert np.array_equal(estimator.observer.x, state)
-    estimate = estimator.step(0.004, q, qd, tau)
-    assert estimate is not None and np.isfinite(estimate.tau_ext).all()
+    assert dirty.step(0.004, bad, qd, tau) is None and dirty.status == Status.NON_FINITE
+    assert dirty.step(0.004, q, qd, np.full(7, np.inf)) is None and dirty.status == Status.NON_FINITE
+    assert dirty.step(0.002, q, qd, tau) is None and dirty.status == Status.STAMP_NOT_INCREASING
+    assert dirty.step(0.004, q[:6], qd, tau) is None and dirty.status == Status.BAD_SHAPE
+    expected = clean.step(0.004, q, qd, tau)
+    estimate = dirty.step(0.004, q, qd, tau)
+    assert np.array_equal(estimate.tau_ext, expected.tau_ext) and np.isfinite(estimate.tau_ext).all()
+    assert dirty.counts[Status.NON_FINITE] == 2 and dirty.counts[Status.BAD_SHAPE] == 1
 
 
-def test_a_long_gap_resets_the_filter(estimator):
-    q, zero = np.array([0, -0.5, 0, -2, 0, 1.5, 0.8]), np.zeros(7)
-    estimator.step(0.0, q, zero, np.full(7, 5.0))
-    for k in range(1, 50):
-        estimator.step(0.002 * k, q, zero, np.full(7, 5.0))
-    assert estimator.step(1.0, q, zero, zero) is None and estimator.status == Status.GAP_RESET
-    assert np.array_equal(estimator.observer.x, np.zeros(7))
-    assert estimator.step(1.002, q, zero, zero) is not None
+def test_a_long_gap_resets_the_filter(panda_config, panda_trained):
+    """After a gap longer than input.max_gap the estimator restarts as if new."""
+    q, qd = np.array([0, -0.5, 0, -2, 0, 1.5, 0.8]), np.zeros(7)
+    estimator = Estimator.from_config(panda_config, panda_trained)
+    for k in range(50):
+        estimator.step(0.002 * k, q, qd, np.full(7, 5.0))
+    assert estimator.step(1.0, q, qd, np.zeros(7)) is None and estimator.status == Status.GAP_RESET
+    fresh = Estimator.from_config(panda_config, panda_trained)
+    fresh.step(1.0, q, qd, np.zeros(7))
+    assert np.array_equal(estimator.step(1.002, q, qd, np.zeros(7)).tau_ext,
+                          fresh.step(1.002, q, qd, np.zeros(7)).tau_ext)
 
 
 def test_uses_the_actual_time_step(panda_config, panda_trained, panda):

@@ -6,10 +6,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from kvark_ros.core.config import OBSERVER_NAMES
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.observers import FilterTuning, make_observer
-from kvark_ros.core.observers.kvark_filter import kalman_update
+from kvark_ros.core.observers.kvark_filter import VARIANTS, KVARKFilter, kalman_update
 from kvark_ros.core.residual_model import GMRReference, KMPHyperparameters, KMPResidualModel
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream
 
@@ -45,7 +44,7 @@ def test_kalman_update_matches_textbook_equations(rng):
 def test_virtual_measurement_sign_gives_torque_acting_on_the_robot(panda_config):
     """ṗ = u + τ_ext (our sign): a momentum growing faster than u means positive τ_ext."""
     residual = flat_residual(7)
-    observer = make_observer("kf", residual, tuning(7), panda_config)
+    observer = KVARKFilter("kf", residual, tuning(7), panda_config)
     dt, tau_ext = 0.002, np.linspace(-1, 1, 7)
     p_prev, u_prev = np.zeros(7), np.full(7, 0.3)
     for _ in range(2000):
@@ -55,12 +54,12 @@ def test_virtual_measurement_sign_gives_torque_acting_on_the_robot(panda_config)
     assert np.allclose(x, tau_ext, atol=1e-3)
 
 
-@pytest.mark.parametrize("name, vb_variant", [(name, "paper") for name in OBSERVER_NAMES] + [("kvark", "huang")])
+@pytest.mark.parametrize("name, vb_variant", [(name, "paper") for name in VARIANTS] + [("kvark", "huang")])
 def test_observers_converge_to_a_step_external_torque(panda, panda_config, panda_trained, name, vb_variant):
     """Synthetic Panda with Gaz friction and 0.02 N·m torque noise; step τ_ext at t = 2 s."""
     config = replace(panda_config, vb_variant=vb_variant)
     stream = synthetic_stream(panda, 8.0, seed=11, external=step_torque(2.0, STEP))
-    estimator = Estimator(config, panda, make_observer(name, panda_trained.residual, panda_trained.tuning, config))
+    estimator = Estimator(config, panda, make_observer(name, panda_trained, config))
     estimates = np.zeros_like(stream.tau_ext)
     for k in range(len(stream.stamp)):
         estimate = estimator.step(stream.stamp[k], stream.q[k], stream.qd[k], stream.tau_m[k])
@@ -79,7 +78,7 @@ def test_observers_converge_to_a_step_external_torque(panda, panda_config, panda
 @pytest.mark.parametrize("vb_variant, steps", [("paper", 100_000), ("huang", 20_000)])
 def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_config, rng, vb_variant, steps):
     config = replace(panda_config, vb_variant=vb_variant)
-    observer = make_observer("kvark", flat_residual(7), tuning(7), config)
+    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), config)
     p_prev, u = np.zeros(7), np.zeros(7)
     for k in range(steps):
         burst = 50.0 if (k // 5000) % 2 else 0.0          # contact on and off
@@ -93,7 +92,7 @@ def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_confi
 
 
 def test_vb_process_noise_grows_when_the_external_torque_jumps(panda_config):
-    observer = make_observer("kvark", flat_residual(7), tuning(7), panda_config)
+    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), panda_config)
     p_prev, u = np.zeros(7), np.zeros(7)
     for _ in range(500):
         observer.step(0.002, np.zeros(7), p_prev, p_prev, u)
@@ -109,14 +108,14 @@ def test_heteroscedastic_variants_trust_the_measurement_less_where_kmp_is_unsure
     config = replace(panda_config, initial_covariance=0.01)
     gains = {}
     for speed in (0.0, 50.0):
-        observer = make_observer("kmp_kf", residual, tuning(7), config)
+        observer = KVARKFilter("kmp_kf", residual, tuning(7), config)
         x, _ = observer.step(0.002, np.full(7, speed), np.full(7, 0.002), np.zeros(7), np.zeros(7))
         gains[speed] = x[0]            # measurement is 1 N·m, prior 0: the estimate is the gain
     assert gains[50.0] < 0.5 * gains[0.0]
 
 
 def test_reset_restores_the_initial_state(panda_config):
-    observer = make_observer("kvark", flat_residual(7), tuning(7), panda_config)
+    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), panda_config)
     observer.step(0.002, np.ones(7), np.ones(7), np.zeros(7), np.zeros(7))
     observer.reset()
     assert np.array_equal(observer.x, np.zeros(7))
@@ -124,5 +123,5 @@ def test_reset_restores_the_initial_state(panda_config):
 
 
 def test_unknown_observer_is_refused(panda_config):
-    with pytest.raises(ValueError, match="unknown observer 'nope'"):
-        make_observer("nope", flat_residual(7), tuning(7), panda_config)
+    with pytest.raises(ValueError, match="unknown K-VARK variant 'nope'"):
+        KVARKFilter("nope", flat_residual(7), tuning(7), panda_config)

@@ -19,9 +19,11 @@ import yaml
 from kvark_ros.core.robot_model import EXAMPLE_ROBOT_DATA_PREFIX, Payload
 
 NODE_NAME = "kvark_estimator"
-OBSERVER_NAMES = ("kvark", "kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis")
+OBSERVER_NAMES = ("kvark", "kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "gmr_gp", "gpadkf", "nnadkf",
+                  "momentum", "kfmo", "sh_akfmo", "vbkfmo_q", "eso", "oracle")
 WRENCH_FRAMES = ("base", "end_effector")
 VB_VARIANTS = ("paper", "huang")
+MEASUREMENTS = ("momentum", "difference")
 
 
 class ConfigError(ValueError):
@@ -46,6 +48,7 @@ class EstimatorConfig:
     vb_iterations: int
     vb_forgetting: float
     vb_variant: str
+    measurement: str
     huang_tau: float
     ewma_rate: float
     nis_rate: float
@@ -109,6 +112,7 @@ _SCHEMA: dict[str, tuple[Callable, str, Any]] = {
     "filter.vb_iterations": (*_integer(1, 50), 3),
     "filter.vb_forgetting": (*_number(0.0, 1.0, low_open=True), 0.999),
     "filter.vb_variant": (*_choice(VB_VARIANTS), "paper"),
+    "filter.measurement": (*_choice(MEASUREMENTS), "momentum"),
     "filter.huang_tau": (*_number(0.0, 1e6, low_open=True), 300.0),
     "filter.ewma_rate": (*_number(0.0, 1.0, low_open=True), 0.01),
     "filter.nis_rate": (*_number(0.0, 1.0, low_open=True), 0.01),
@@ -148,6 +152,9 @@ def config_from_parameters(parameters: Mapping[str, Any], source: str = "configu
         if not check(value):
             raise ConfigError(f"{source}: key '{key}' has invalid value {value!r}; allowed: {allowed}")
         values[key] = value
+    if values["filter.vb_variant"] == "huang" and values["filter.measurement"] == "momentum":
+        raise ConfigError(f"{source}: key 'filter.vb_variant' huang is implemented for "
+                          "filter.measurement: difference only; allowed with momentum: paper")
     mass = values["robot_model.payload.mass"]
     payload = None if mass == 0.0 else Payload(
         mass, tuple(values["robot_model.payload.com"]), tuple(values["robot_model.payload.inertia"]))
@@ -166,6 +173,7 @@ def config_from_parameters(parameters: Mapping[str, Any], source: str = "configu
         vb_iterations=values["filter.vb_iterations"],
         vb_forgetting=values["filter.vb_forgetting"],
         vb_variant=values["filter.vb_variant"],
+        measurement=values["filter.measurement"],
         huang_tau=values["filter.huang_tau"],
         ewma_rate=values["filter.ewma_rate"],
         nis_rate=values["filter.nis_rate"],

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -63,16 +64,16 @@ class Estimator:
 
     @classmethod
     def from_config(cls, config: EstimatorConfig, trained: TrainedModel | None = None,
-                    observer: str | None = None, urdf: str | None = None) -> "Estimator":
+                    observer: str | None = None, urdf: str | None = None, plant: Any = None) -> "Estimator":
         """Build robot model and observer from the config; ``trained`` defaults to ``config.model_dir``.
 
-        ``urdf`` overrides ``config.urdf`` (the node passes the ``robot_description`` string).
+        ``urdf`` overrides ``config.urdf`` (the node passes the ``robot_description`` string);
+        ``plant`` is the simulator's plant spec, needed by the ``oracle`` observer only.
         """
         robot = RobotModel(urdf or config.urdf, config.joint_names, config.ee_frame,
                            config.flange_frame, config.payload)
         trained = trained or load_model(config.model_dir, config.joint_names)
-        return cls(config, robot, make_observer(observer or config.observer, trained.residual,
-                                                trained.tuning, config))
+        return cls(config, robot, make_observer(observer or config.observer, trained, config, plant))
 
     def reset(self) -> None:
         """Restart from the next sample (filter state and previous sample forgotten)."""

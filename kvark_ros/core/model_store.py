@@ -1,7 +1,8 @@
 """A model directory: the KMP residual model, the filter tuning and where they came from.
 
-Layout: ``model.yaml`` (robot, joint names, filter tuning, provenance) beside the residual
-model's ``kmp.npz`` and ``kmp.yaml``. Saving builds the whole directory next to the target and
+Layout: ``model.yaml`` (robot, joint names, filter tunings, momentum-noise levels, provenance)
+beside the residual models' files: ``kmp.npz``/``kmp.yaml`` for K-VARK and, when trained, the
+baselines' ``gmr_gp``, ``sparse_gp`` and ``mlp`` files. Saving builds the whole directory next to the target and
 swaps it in with renames, so a failed save never leaves a half-written or broken model.
 """
 from __future__ import annotations
@@ -11,12 +12,13 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import yaml
 
 from kvark_ros import __version__
 from kvark_ros.core.observers.base import FilterTuning
+from kvark_ros.core.observers.momentum_observers import MomentumNoise
 from kvark_ros.core.residual_model import KMPResidualModel, ResidualModelError
 
 MODEL_FILE = "model.yaml"
@@ -25,13 +27,27 @@ MODEL_FORMAT = 1
 
 @dataclass(frozen=True)
 class TrainedModel:
-    """What the estimator needs from training."""
+    """What the estimators need from training.
+
+    residual: the KMP model; tuning: its filter tuning. baselines: the learned-residual
+    baselines by observer name (``gmr_gp``, ``gpadkf``, ``nnadkf``) with their own tunings in
+    ``baseline_tunings``. momentum_noise: noise levels of the residual-free momentum observers.
+    """
 
     robot: str
     joint_names: tuple[str, ...]
     residual: KMPResidualModel
     tuning: FilterTuning
     info: dict[str, Any] = field(default_factory=dict)   # provenance: bags, hashes, hyperparameters
+    baselines: Mapping[str, Any] = field(default_factory=dict)
+    baseline_tunings: Mapping[str, FilterTuning] = field(default_factory=dict)
+    momentum_noise: MomentumNoise | None = None
+
+
+def _baseline_classes() -> dict[str, type]:
+    """Observer name -> residual model class of the learned baselines (imported on demand)."""
+    from kvark_ros.core.residual_baselines import GMRGPResidualModel, MLPResidualModel, SparseGPResidualModel
+    return {"gmr_gp": GMRGPResidualModel, "gpadkf": SparseGPResidualModel, "nnadkf": MLPResidualModel}
 
 
 def save_model(directory: str | os.PathLike, model: TrainedModel) -> None:
@@ -41,8 +57,12 @@ def save_model(directory: str | os.PathLike, model: TrainedModel) -> None:
     staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
         model.residual.save(staging)
+        for baseline in model.baselines.values():
+            baseline.save(staging)
         document = {"format": MODEL_FORMAT, "kvark_ros_version": __version__, "robot": model.robot,
                     "joint_names": list(model.joint_names), "filter_tuning": model.tuning.to_dict(),
+                    "baselines": {name: model.baseline_tunings[name].to_dict() for name in model.baselines},
+                    "momentum_noise": None if model.momentum_noise is None else model.momentum_noise.to_dict(),
                     "info": model.info}
         (staging / MODEL_FILE).write_text(yaml.safe_dump(document, sort_keys=False))
         backup = target.with_name(f".{target.name}.previous")
@@ -72,12 +92,24 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
         names = tuple(document["joint_names"])
         tuning = FilterTuning.from_dict(document["filter_tuning"])
         robot = str(document["robot"])
+        baseline_tunings = {name: FilterTuning.from_dict(values)
+                            for name, values in (document.get("baselines") or {}).items()}
+        noise = document.get("momentum_noise")
+        momentum_noise = None if noise is None else MomentumNoise.from_dict(noise)
     except (KeyError, TypeError, ValueError) as exc:
         raise ResidualModelError(f"{path}: incomplete or invalid model file ({exc}); retrain the model") from exc
     if joint_names is not None and tuple(joint_names) != names:
         raise ResidualModelError(f"{path}: model joints {list(names)} differ from the configured "
                                  f"{list(joint_names)}; train a model for these joints")
     residual = KMPResidualModel.load(directory)
-    if residual.n_joints != len(names) or len(tuning.process_noise_density) != len(names):
-        raise ResidualModelError(f"{path}: residual model and filter tuning disagree on the number of joints")
-    return TrainedModel(robot, names, residual, tuning, dict(document.get("info") or {}))
+    classes = _baseline_classes() if baseline_tunings else {}
+    unknown = sorted(set(baseline_tunings) - set(classes))
+    if unknown:
+        raise ResidualModelError(f"{path}: unknown baseline '{unknown[0]}'; retrain the model")
+    baselines = {name: classes[name].load(directory) for name in baseline_tunings}
+    sizes = {residual.n_joints, len(tuning.process_noise_density)}
+    sizes |= {model.n_joints for model in baselines.values()}
+    if sizes != {len(names)}:
+        raise ResidualModelError(f"{path}: residual models and filter tunings disagree on the number of joints")
+    return TrainedModel(robot, names, residual, tuning, dict(document.get("info") or {}), baselines,
+                        baseline_tunings, momentum_noise)

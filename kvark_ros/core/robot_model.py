@@ -200,3 +200,18 @@ class RobotModel:
             return wrench, None
         wrench_cov = pinv @ tau_cov @ pinv.T
         return wrench, 0.5 * (wrench_cov + wrench_cov.T)
+
+    def sensor_torque(self, q: np.ndarray, frame: str, wrench: np.ndarray) -> np.ndarray:
+        """``τ = Jᵀ w`` (paper v2 eq. 37) for a wrench (6,) measured in ``frame``'s own axes at its origin."""
+        jac = pin.computeFrameJacobian(self.model, self.data, q, self._frame_id(frame), pin.LOCAL)
+        return jac.T @ wrench
+
+    def wrench_at_end_effector(self, q: np.ndarray, frame: str, wrench: np.ndarray,
+                               axes: str = "base") -> np.ndarray:
+        """Re-express a wrench (6,) given in ``frame`` (its axes, its origin) at the end-effector
+        origin, in base or end-effector axes: how a wrist F/T reading compares with our estimate."""
+        pin.framesForwardKinematics(self.model, self.data, q)
+        in_world = self.data.oMf[self._frame_id(frame)].act(pin.Force(wrench[:3], wrench[3:]))
+        ee = self.data.oMf[self.ee_frame_id]
+        target = pin.SE3(np.eye(3), ee.translation) if axes == "base" else ee
+        return target.actInv(in_world).vector.copy()

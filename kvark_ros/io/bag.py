@@ -441,6 +441,12 @@ def write_run(
     are a Float64MultiArray in the run's joint order, labelled with the joint
     names so the order survives a reader that asks for another one.
     """
+    with BagWriter(path, storage=storage, overwrite=overwrite) as bag:
+        write_run_messages(bag, run, topics)
+
+
+def write_run_messages(bag: BagWriter, run: RecordedRun, topics: TopicNames = TopicNames()) -> None:
+    """Write ``run``'s messages into an open ``bag``, interleaved in log-time order."""
     names = run.joint_names
     events: list[tuple[npt.NDArray[np.int64], int]] = []
     series: list[Any] = [run.joint_states, run.commands, run.wrench, run.external_torque]
@@ -451,37 +457,22 @@ def write_run(
     kinds = np.concatenate([np.full(ns.shape, k) for ns, k in events])
     rows = np.concatenate([np.arange(ns.shape[0]) for ns, _ in events])
     order = np.lexsort((rows, kinds, log_ns))
-
-    with BagWriter(path, storage=storage, overwrite=overwrite) as bag:
-        js, cmd, wr, ext = run.joint_states, run.commands, run.wrench, run.external_torque
-        for i in order:
-            kind, row = int(kinds[i]), int(rows[i])
-            stamp = float(series[kind].stamp[row])
-            if kind == 0:
-                bag.joint_state(
-                    topics.joint_states,
-                    stamp,
-                    names,
-                    js.position[row],
-                    js.velocity[row],
-                    js.effort[row],
-                )
-            elif kind == 1:
-                assert cmd is not None
-                bag.float64_array(topics.effort_commands, stamp, cmd.effort[row], names=names)
-            elif kind == 2:
-                assert wr is not None
-                bag.wrench(topics.wrench, stamp, wr.frame_id, wr.force[row], wr.torque[row])
-            else:
-                assert ext is not None
-                bag.joint_state(
-                    topics.external_torque,
-                    stamp,
-                    names,
-                    ext.position[row],
-                    ext.velocity[row],
-                    ext.effort[row],
-                )
+    js, cmd, wr, ext = run.joint_states, run.commands, run.wrench, run.external_torque
+    for i in order:
+        kind, row = int(kinds[i]), int(rows[i])
+        stamp = float(series[kind].stamp[row])
+        if kind == 0:
+            bag.joint_state(topics.joint_states, stamp, names, js.position[row], js.velocity[row], js.effort[row])
+        elif kind == 1:
+            assert cmd is not None
+            bag.float64_array(topics.effort_commands, stamp, cmd.effort[row], names=names)
+        elif kind == 2:
+            assert wr is not None
+            bag.wrench(topics.wrench, stamp, wr.frame_id, wr.force[row], wr.torque[row])
+        else:
+            assert ext is not None
+            bag.joint_state(topics.external_torque, stamp, names, ext.position[row], ext.velocity[row],
+                            ext.effort[row])
 
 
 def _stamps_ns(stamp: FloatArray) -> npt.NDArray[np.int64]:

@@ -10,17 +10,18 @@ import argparse
 import gc
 import json
 import time
-from dataclasses import replace
 
 import numpy as np
 
 from kvark_ros.core.config import OBSERVER_NAMES, default_config_path, load_config
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.model_store import TrainedModel
-from kvark_ros.core.observers import make_observer
-from kvark_ros.core.residual_model import KMPResidualModel, default_hyperparameters
+from kvark_ros.core.observers import LEARNED_BASELINE_VARIANTS, make_observer
 from kvark_ros.core.robot_model import RobotModel
-from kvark_ros.core.tuning import match_covariances, virtual_measurements
+from kvark_ros.io.alignment import EstimatorInputs
+from kvark_ros.tools.train import train_model
+
+BENCH_OBSERVERS = tuple(name for name in OBSERVER_NAMES if name != "oracle")   # the oracle needs a plant file
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream
 
 
@@ -33,7 +34,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--robot", default="panda", help="robot whose config/<robot>.yaml is used (default: panda)")
     parser.add_argument("--config", help="config YAML (default: the robot's shipped config)")
     parser.add_argument("--observer", default="kvark",
-                        help=f"observer name, a comma-separated list, or 'all' ({', '.join(OBSERVER_NAMES)}); "
+                        help=f"observer name, a comma-separated list, or 'all' ({', '.join(BENCH_OBSERVERS)}); "
                              "default: kvark")
     parser.add_argument("--duration", type=float, default=10.0, help="length of the timed stream, s (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the synthetic streams (default 0)")
@@ -41,22 +42,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    names = OBSERVER_NAMES if args.observer == "all" else tuple(args.observer.split(","))
-    unknown = [name for name in names if name not in OBSERVER_NAMES]
+    names = BENCH_OBSERVERS if args.observer == "all" else tuple(args.observer.split(","))
+    unknown = [name for name in names if name not in BENCH_OBSERVERS]
     if unknown:
-        raise SystemExit(f"kvark bench: unknown observer {unknown[0]!r}; choose from {', '.join(OBSERVER_NAMES)} or all")
+        raise SystemExit(f"kvark bench: unknown observer {unknown[0]!r}; choose from {', '.join(BENCH_OBSERVERS)} "
+                         "or all")
     if args.duration <= 0:
         raise SystemExit("kvark bench: --duration must be positive")
     config = load_config(args.config or default_config_path(args.robot))
     robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
     print(f"training a residual model on a 20 s synthetic free-motion stream of {config.robot} ...", flush=True)
-    trained = train_synthetic(robot, config.robot, seed=args.seed)
+    trained = train_synthetic(robot, config.robot, seed=args.seed,
+                              baselines=any(name in LEARNED_BASELINE_VARIANTS for name in names))
     torque = np.linspace(2.0, 0.5, robot.n)
     stream = synthetic_stream(robot, args.duration, seed=args.seed + 1, external=step_torque(args.duration / 4, torque))
     results = {}
     print(f"{'observer':<12} {'steps':>6} {'p50 µs':>8} {'p99 µs':>8} {'max µs':>8} {'RMSE N·m':>9}")
     for name in names:
-        estimator = Estimator(config, robot, make_observer(name, trained.residual, trained.tuning, config))
+        estimator = Estimator(config, robot, make_observer(name, trained, config))
         latency, error = time_estimator(estimator, stream)
         results[name] = {"steps": len(latency), "p50_us": round(float(np.percentile(latency, 50)), 2),
                          "p99_us": round(float(np.percentile(latency, 99)), 2),
@@ -71,18 +74,15 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def train_synthetic(robot: RobotModel, robot_name: str, seed: int = 0, duration: float = 20.0) -> TrainedModel:
-    """A residual model and filter tuning from a synthetic contact-free stream."""
-    train = synthetic_stream(robot, duration, seed=seed)
-    tau_el = np.array([robot.inverse_dynamics(q, qd, qdd) for q, qd, qdd in zip(train.q, train.qd, train.qdd)])
-    n_support = 40
-    spacing = np.ptp(train.qd, axis=0) / (n_support - 1)
-    # KMP needs support points no further apart than the length scale (else the variance ripples).
-    hyper = replace(default_hyperparameters(robot.n, n_support), length_scale=np.maximum(0.1, spacing))
-    residual = KMPResidualModel.fit(train.qd, train.tau_m - tau_el, hyper, n_support=n_support, seed=seed)
-    y = virtual_measurements(robot, residual, train.stamp, train.q, train.qd, train.tau_m)
-    tuning = match_covariances(y, float(np.median(np.diff(train.stamp))))
-    return TrainedModel(robot_name, robot.joint_names, residual, tuning, {"source": "synthetic stream"})
+def train_synthetic(robot: RobotModel, robot_name: str, seed: int = 0, duration: float = 20.0,
+                    baselines: bool = True) -> TrainedModel:
+    """The trainer of ``kvark train``, on two synthetic contact-free streams instead of bags."""
+    segments = []
+    for offset in range(2):
+        stream = synthetic_stream(robot, duration / 2, seed=seed + 1000 * offset)
+        segments.append(EstimatorInputs(stream.stamp, stream.q, stream.qd, stream.tau_m, "synthetic", 0))
+    return train_model(robot, robot_name, segments, baselines=baselines, seed=seed, log=lambda _line: None,
+                       info={"source": "synthetic stream"})
 
 
 def time_estimator(estimator: Estimator, stream) -> tuple[np.ndarray, float]:

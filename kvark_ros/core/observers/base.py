@@ -3,9 +3,18 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any, Mapping, Protocol
 
 import numpy as np
+
+
+class ResidualPredictor(Protocol):
+    """A residual-torque model: per-joint mean (n,) N·m and variance (n,) N²·m² at velocity q̇ (n,)."""
+
+    @property
+    def n_joints(self) -> int: ...
+
+    def predict(self, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 class Observer(ABC):
@@ -51,28 +60,31 @@ class FilterTuning:
     process_noise_density: q in ``Σ_d = diag(q)·t_s`` for the random walk of eq. 32, N²·m²/s.
     measurement_variance: the fixed R of the non-heteroscedastic filter (A1), N²·m².
     empirical_variance: ``Σ_emp / t_s²`` at start and its upper bound (v2 Remark 2), N²·m².
+    residual_variance: mean squared error of the residual model on held-out training samples,
+        N²·m²; the static stand-in for the KMP variance in the momentum-state filter's A1.
     """
 
     process_noise_density: np.ndarray
     measurement_variance: np.ndarray
     empirical_variance: np.ndarray
+    residual_variance: np.ndarray | None = None
 
     def __post_init__(self) -> None:
-        for name in ("process_noise_density", "measurement_variance", "empirical_variance"):
+        names = ("process_noise_density", "measurement_variance", "empirical_variance", "residual_variance")
+        for name in names:
+            if getattr(self, name) is None:
+                continue
             value = np.asarray(getattr(self, name), dtype=float)
             if value.ndim != 1 or not np.all(np.isfinite(value)) or np.any(value <= 0.0):
                 raise ValueError(f"filter tuning '{name}' must be a vector of positive finite numbers, got {value}")
             object.__setattr__(self, name, value)
-        if not (len(self.process_noise_density) == len(self.measurement_variance) == len(self.empirical_variance)):
+        if len({len(getattr(self, name)) for name in names if getattr(self, name) is not None}) != 1:
             raise ValueError("filter tuning vectors must all have one entry per joint")
 
     def to_dict(self) -> dict[str, list[float]]:
         """Plain lists, for the model's YAML file."""
-        return {"process_noise_density": self.process_noise_density.tolist(),
-                "measurement_variance": self.measurement_variance.tolist(),
-                "empirical_variance": self.empirical_variance.tolist()}
+        return {name: value.tolist() for name, value in vars(self).items() if value is not None}
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> "FilterTuning":
-        return cls(**{key: np.asarray(values[key], dtype=float)
-                      for key in ("process_noise_density", "measurement_variance", "empirical_variance")})
+        return cls(**{key: np.asarray(value, dtype=float) for key, value in values.items()})

@@ -30,8 +30,7 @@ import numpy as np
 
 from kvark_ros.core.config import EstimatorConfig
 from kvark_ros.core.linalg import solve_spd
-from kvark_ros.core.observers.base import FilterTuning, Observer
-from kvark_ros.core.residual_model import KMPResidualModel
+from kvark_ros.core.observers.base import FilterTuning, Observer, ResidualPredictor
 
 NIS_SCALE_BOUNDS = (1e-2, 1e4)   # limits of the A4 process-noise scale α, so one outlier cannot freeze or explode Σ_d
 
@@ -81,20 +80,22 @@ class KVARKFilter(Observer):
     """Disturbance KF with KMP residual correction; ``variant`` selects K-VARK or an ablation.
 
     State ``x = τ_ext`` (n,) N·m, random walk (eq. 32); covariance ``P`` (n, n) N²·m².
+    ``residual`` is the KMP model for K-VARK and the ablations, another learned model for the
+    baselines that share this filter, or the plant's true friction for the oracle.
     """
 
     uses_residual_model = True
 
-    def __init__(self, name: str, residual: KMPResidualModel, tuning: FilterTuning,
-                 config: EstimatorConfig) -> None:
+    def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning,
+                 config: EstimatorConfig, name: str | None = None) -> None:
         super().__init__(residual.n_joints)
-        if name not in VARIANTS:
-            raise ValueError(f"unknown K-VARK variant '{name}'; known: {', '.join(VARIANTS)}")
+        if variant not in VARIANTS:
+            raise ValueError(f"unknown K-VARK variant '{variant}'; known: {', '.join(VARIANTS)}")
         if len(tuning.process_noise_density) != self.n:
             raise ValueError(f"filter tuning has {len(tuning.process_noise_density)} joints, "
                              f"the residual model {self.n}")
-        self.name = name
-        self.variant = VARIANTS[name]
+        self.name = name or variant
+        self.variant = VARIANTS[variant]
         self.residual = residual
         self.tuning = tuning
         self.config = config

@@ -1,0 +1,172 @@
+"""``kvark benchmark``: every observer on the same simulated data, the way the papers compare them.
+
+Simulates contact-free training bags (optimised excitation) and test bags (payload, contact,
+collision), trains the residual models, replays every observer (the oracle gets the plant
+file) and writes ``results.json`` (``{"scenarios": {NAME: <metrics.json>}}``) and ``report.md``
+with tables in the spirit of paper v2 Tables III, IV, V, VII, VIII and IX.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+from kvark_ros.core.config import OBSERVER_NAMES, default_config_path, load_config
+from kvark_ros.core.model_store import save_model
+from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.io.alignment import estimator_inputs
+from kvark_ros.io.bag import read_run, write_run
+from kvark_ros.tools.replay import replay
+from kvark_ros.tools.report import metrics_table
+from kvark_ros.tools.train import train_model
+
+TEST_SCENARIOS = ("payload", "contact", "collision")
+ABLATIONS = ("kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "kvark")
+PAPER_RATIOS = {"gpadkf": 0.59, "gmr_gp": 0.66, "nnadkf": 0.75}   # v2 Table IX, external ground truth
+
+
+@dataclass(frozen=True)
+class BenchmarkPlan:
+    """How much data: training recordings and the length of each test recording, s."""
+
+    train_seeds: tuple[int, ...]
+    train_duration: float
+    test_duration: float
+
+
+FULL = BenchmarkPlan(train_seeds=(11, 12, 13, 14, 15), train_duration=20.0, test_duration=20.0)
+QUICK = BenchmarkPlan(train_seeds=(11, 12), train_duration=10.0, test_duration=8.0)
+
+
+def simulate_bags(robot: str, plan: BenchmarkPlan, folder: Path, seed: int, log) -> tuple[list[Path], dict]:
+    """Training and test bags under ``folder`` (reused when already there)."""
+    from kvark_ros.sim.scenarios import simulate
+    folder.mkdir(parents=True, exist_ok=True)
+    jobs = [(f"train_excitation_{s}", "excitation", s + seed, plan.train_duration) for s in plan.train_seeds]
+    jobs += [(f"test_{name}", name, seed + 100 + i, plan.test_duration) for i, name in enumerate(TEST_SCENARIOS)]
+    paths: dict[str, Path] = {}
+    for label, scenario, scenario_seed, duration in jobs:
+        path = folder / label
+        if not path.exists():
+            started = time.perf_counter()
+            write_run(path, simulate(robot, scenario, scenario_seed, duration))
+            log(f"[benchmark] simulated {label} ({duration:g} s) in {time.perf_counter() - started:.1f} s")
+        paths[label] = path
+    train = [paths[label] for label, scenario, *_ in jobs if scenario == "excitation"]
+    tests = {scenario: paths[f"test_{scenario}"] for scenario in TEST_SCENARIOS}
+    return train, tests
+
+
+def acceptance(scenarios: Mapping[str, Any]) -> list[str]:
+    """The issue's acceptance checks, as lines that say pass or fail with the figures."""
+    lines = []
+    for name in ("payload", "contact"):
+        observers = scenarios.get(name, {}).get("observers", {})
+        if "kvark" not in observers:
+            continue
+        kvark = observers["kvark"]["joint_rmse_mean"]
+        for other, limit in (("momentum", 0.8), ("kf", 0.8), ("oracle", 1.5)):
+            if other in observers:
+                ratio = kvark / observers[other]["joint_rmse_mean"]
+                ok = ratio <= limit
+                lines.append(f"- {name}: K-VARK / {other} joint RMSE = {ratio:.2f} (≤ {limit}: "
+                             f"{'pass' if ok else 'FAIL'})")
+        coverage = observers["kvark"]["coverage95"]
+        ok = coverage is not None and 0.85 <= coverage <= 0.99
+        lines.append(f"- {name}: K-VARK coverage95 = {coverage} (0.85-0.99: {'pass' if ok else 'FAIL'})")
+    return lines
+
+
+def write_report(out: Path, results: Mapping[str, Any], training: Mapping[str, Any], robot: str,
+                 plan: BenchmarkPlan, seconds: float) -> None:
+    """report.md with the papers' kinds of tables."""
+    scenarios = results["scenarios"]
+    text = [f"# kvark benchmark: {robot}", "",
+            f"Training: {len(plan.train_seeds)} × {plan.train_duration:g} s excitation bags; tests: "
+            f"{plan.test_duration:g} s each. Total {seconds / 60:.1f} min.", "",
+            "## Residual models on held-out training samples (cf. v2 Table III)", "",
+            "| model | " + " | ".join(f"joint {j + 1}" for j in range(len(training["held_out_rmse"]))) + " |",
+            "|---|" + "---|" * len(training["held_out_rmse"])]
+    for name, rmse in training.get("held_out_rmse_by_model", {"kmp": training["held_out_rmse"]}).items():
+        text.append(f"| {name} | " + " | ".join(f"{v:.3f}" for v in rmse) + " |")
+    for name, metrics in scenarios.items():
+        text += ["", f"## {name} (ground truth: {metrics['ground_truth']}; cf. v2 Tables IV-V)", "",
+                 metrics_table(metrics["observers"])]
+    text += ["", "## Ablations, joint RMSE in N·m (cf. v2 Tables VII-VIII)", "",
+             "| scenario | " + " | ".join(ABLATIONS) + " | measured order (best first) |",
+             "|---|" + "---|" * (len(ABLATIONS) + 1)]
+    for name, metrics in scenarios.items():
+        values = {a: metrics["observers"][a]["joint_rmse_mean"] for a in ABLATIONS if a in metrics["observers"]}
+        order = " < ".join(sorted(values, key=values.get))
+        text.append(f"| {name} | " + " | ".join(f"{values.get(a, float('nan')):.4f}" for a in ABLATIONS)
+                    + f" | {order} |")
+    text += ["", "## K-VARK against the learned baselines (cf. v2 Table IX)", "",
+             "| scenario | " + " | ".join(f"K-VARK / {b} (paper {r})" for b, r in PAPER_RATIOS.items()) + " |",
+             "|---|" + "---|" * len(PAPER_RATIOS)]
+    for name, metrics in scenarios.items():
+        obs = metrics["observers"]
+        cells = [f"{obs['kvark']['joint_rmse_mean'] / obs[b]['joint_rmse_mean']:.2f}" if b in obs and "kvark" in obs
+                 else "–" for b in PAPER_RATIOS]
+        text.append(f"| {name} | " + " | ".join(cells) + " |")
+    text += ["", "## Acceptance checks", ""] + acceptance(scenarios)
+    text += ["", "Per-scenario reports and plots: " + ", ".join(f"[{n}]({n}/report.md)" for n in scenarios)]
+    (out / "report.md").write_text("\n".join(text) + "\n")
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "benchmark", help="simulate, train and compare every observer (writes results.json and report.md)",
+        description="Simulate training bags (excitation) and test bags (payload, contact, collision), train, "
+                    "replay every observer and write DIR/results.json and DIR/report.md with tables like the "
+                    "papers'. Bags are kept under DIR/bags and reused on a rerun.")
+    parser.add_argument("--robot", default="panda", choices=("panda", "ur5"), help="simulated robot (default panda)")
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--quick", action="store_true", help="less data: finishes in a few minutes")
+    parser.add_argument("--seed", type=int, default=0, help="offset of every simulation seed (default 0)")
+    parser.add_argument("--observers", default="all", help="comma-separated observers or 'all' (default)")
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    started = time.perf_counter()
+    plan = QUICK if args.quick else FULL
+    out = Path(args.out)
+
+    def log(line: str) -> None:
+        print(line, flush=True)
+
+    config = load_config(default_config_path(args.robot))
+    from kvark_ros.sim.plant import default_plant_path, load_plant
+    plant = load_plant(default_plant_path(args.robot), config.n_joints)
+    train_bags, test_bags = simulate_bags(args.robot, plan, out / "bags", args.seed, log)
+    robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
+    segments = [estimator_inputs(read_run(bag, config.joint_names), path=str(bag)) for bag in train_bags]
+    trained = train_model(robot, config.robot, segments, seed=args.seed, log=log,
+                          info={"bags": [bag.name for bag in train_bags]})
+    save_model(out / "model", trained)
+    observers = list(OBSERVER_NAMES) if args.observers == "all" else args.observers.split(",")
+    results: dict[str, Any] = {"scenarios": {}}
+    for scenario, bag in test_bags.items():
+        log(f"[benchmark] replaying {scenario}")
+        results["scenarios"][scenario] = replay(config, trained, bag, out / scenario, observers, plant=plant,
+                                                write_bag=False, log=log)
+    (out / "results.json").write_text(json.dumps(results, indent=2))
+    write_report(out, results, trained.info, args.robot, plan, time.perf_counter() - started)
+    for line in acceptance(results["scenarios"]):
+        log(line)
+    log(f"[benchmark] wrote {out}/results.json and {out}/report.md in {(time.perf_counter() - started) / 60:.1f} min")
+    return 0
+
+
+def headline(results: Mapping[str, Any], observers: tuple[str, ...] = ("kvark", "kf", "momentum", "oracle")) -> str:
+    """A compact joint-RMSE table (scenarios × observers) for the README."""
+    rows = ["| scenario | " + " | ".join(observers) + " |", "|---|" + "---|" * len(observers)]
+    for name, metrics in results["scenarios"].items():
+        obs = metrics["observers"]
+        rows.append(f"| {name} | " + " | ".join(f"{obs[o]['joint_rmse_mean']:.3f}" if o in obs else "–"
+                                                for o in observers) + " |")
+    return "\n".join(rows)
+

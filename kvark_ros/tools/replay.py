@@ -1,0 +1,214 @@
+"""``kvark replay``: run a bag through one or more observers, as the ROS node would.
+
+One pass over the bag per observer through the same ``Estimator`` the node uses. Writes
+``estimates.mcap`` (the bag's inputs plus each observer's outputs under ``/kvark/<observer>/``),
+``metrics.json`` (paper v2 Tables IV-V), ``report.md`` and plots.
+
+Ground truth, in order of preference: the true external torque the bag carries (simulation),
+the wrist F/T through ``τ = Jᵀ w`` (v2 eq. 37), or the two-run difference against a
+``--reference-bag`` recorded without the load (v2 eq. 40, our sign: ``τ_ext = τ_free − τ_loaded``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, load_config
+from kvark_ros.core.estimator import Estimator
+from kvark_ros.core.model_store import TrainedModel, load_model
+from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.io.alignment import EstimatorInputs, estimator_inputs
+from kvark_ros.io.bag import BagError, BagWriter, RecordedRun, read_run, write_run_messages
+from kvark_ros.tools.metrics import observer_metrics
+
+OUTPUT_PREFIX = "/kvark"
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """τ_ext (T, n) N·m and wrench (T, 6) at the end-effector origin in the configured axes, or None."""
+
+    kind: str
+    tau_ext: np.ndarray
+    wrench: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class ObserverRun:
+    """One observer's outputs along the inputs; rows where ``valid`` is False had no estimate."""
+
+    name: str
+    tau_ext: np.ndarray
+    tau_std: np.ndarray | None
+    wrench: np.ndarray
+    wrench_std: np.ndarray | None
+    valid: np.ndarray
+    us_per_step: float
+    rejected: dict[str, int]
+
+
+def _align(stamp: np.ndarray, source_stamp: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Linear interpolation of ``values`` (T', k) at ``stamp``; NaN outside the source's span."""
+    out = np.empty((len(stamp), values.shape[1]))
+    for column in range(values.shape[1]):
+        out[:, column] = np.interp(stamp, source_stamp, values[:, column], left=np.nan, right=np.nan)
+    return out
+
+
+def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, inputs: EstimatorInputs,
+                 reference: EstimatorInputs | None) -> GroundTruth | None:
+    """The best ground truth the data offers (see module docstring), on the inputs' stamps."""
+    wrench = None
+    if run.wrench is not None:
+        measured = np.hstack((run.wrench.force, run.wrench.torque))
+        at_sensor = _align(inputs.stamp, run.wrench.stamp, measured)
+        frame = run.wrench.frame_id
+        wrench = np.array([robot.wrench_at_end_effector(q, frame, w, config.wrench_frame) if np.isfinite(w).all()
+                           else np.full(6, np.nan) for q, w in zip(inputs.q, at_sensor)])
+    if run.external_torque is not None:
+        tau = _align(inputs.stamp, run.external_torque.stamp, run.external_torque.effort)
+        if wrench is None:    # no wrist sensor: the true torque through the same pseudo-inverse (eq. 39)
+            wrench = np.array([robot.wrench_from_torque(q, t, None, config.wrench_damping, config.wrench_frame)[0]
+                               for q, t in zip(inputs.q, np.nan_to_num(tau))])
+        return GroundTruth("true external joint torque (/ground_truth/external_joint_torque)", tau, wrench)
+    if run.wrench is not None:
+        tau = np.array([robot.sensor_torque(q, run.wrench.frame_id, w) if np.isfinite(w).all()
+                        else np.full(robot.n, np.nan) for q, w in zip(inputs.q, at_sensor)])
+        return GroundTruth(f"wrist F/T through J^T w (v2 eq. 37, frame {run.wrench.frame_id})", tau, wrench)
+    if reference is not None:
+        elapsed = inputs.stamp - inputs.stamp[0]
+        free = _align(elapsed, reference.stamp - reference.stamp[0], reference.tau_m)
+        return GroundTruth("two-run difference against the reference bag (v2 eq. 40)", free - inputs.tau_m, None)
+    return None
+
+
+def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: EstimatorInputs, name: str,
+                 plant: Any = None) -> ObserverRun:
+    """Step a fresh Estimator with observer ``name`` over every input sample."""
+    estimator = Estimator.from_config(config, trained, observer=name, plant=plant)
+    count, n = len(inputs), estimator.robot.n
+    tau = np.zeros((count, n))
+    wrench = np.zeros((count, 6))
+    tau_var = np.full((count, n), np.nan)
+    wrench_var = np.full((count, 6), np.nan)
+    valid = np.zeros(count, dtype=bool)
+    started = time.perf_counter()
+    for k in range(count):
+        estimate = estimator.step(inputs.stamp[k], inputs.q[k], inputs.qd[k], inputs.tau_m[k])
+        if estimate is None:
+            continue
+        valid[k] = True
+        tau[k], wrench[k] = estimate.tau_ext, estimate.wrench
+        if estimate.tau_cov is not None:
+            tau_var[k] = np.diag(estimate.tau_cov)
+            wrench_var[k] = np.diag(estimate.wrench_cov)
+    elapsed = time.perf_counter() - started
+    reports = estimator.observer.reports_covariance
+    rejected = {status: number for status, number in estimator.counts.items() if status != "ok"}
+    return ObserverRun(name, tau, np.sqrt(tau_var) if reports else None, wrench,
+                       np.sqrt(wrench_var) if reports else None, valid, 1e6 * elapsed / max(count, 1), rejected)
+
+
+def write_estimates(path: Path, run: RecordedRun, inputs: EstimatorInputs, results: Sequence[ObserverRun],
+                    config: EstimatorConfig) -> None:
+    """The bag's own messages plus every observer's outputs, atomically."""
+    frame = "base" if config.wrench_frame == "base" else config.ee_frame
+    names = run.joint_names
+    with BagWriter(path, overwrite=True) as bag:
+        write_run_messages(bag, run)
+        for result in results:
+            prefix = f"{OUTPUT_PREFIX}/{result.name}"
+            for k in np.flatnonzero(result.valid):
+                stamp = float(inputs.stamp[k])
+                bag.joint_state(f"{prefix}/external_joint_torque", stamp, names, effort=result.tau_ext[k])
+                bag.wrench(f"{prefix}/external_wrench", stamp, frame, result.wrench[k, :3], result.wrench[k, 3:])
+                if result.tau_std is not None:
+                    bag.float64_array(f"{prefix}/external_joint_torque_stddev", stamp, result.tau_std[k], names=names)
+
+
+def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path, observers: Sequence[str],
+           reference_bag: Path | None = None, plant: Any = None, write_bag: bool = True,
+           plots: bool = True, log=print) -> dict:
+    """Replay ``bag`` through ``observers``; write outputs under ``out``; return metrics.json's content."""
+    started = time.perf_counter()
+    run = read_run(bag, config.joint_names)
+    inputs = estimator_inputs(run, path=str(bag))
+    if len(inputs) < 2:
+        raise BagError(f"{bag}: fewer than two usable samples; check that joint_states and effort_commands overlap")
+    reference = None
+    if reference_bag is not None:
+        reference = estimator_inputs(read_run(reference_bag, config.joint_names), path=str(reference_bag))
+    robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
+    truth = ground_truth(robot, config, run, inputs, reference)
+    decode_seconds = time.perf_counter() - started
+    results = []
+    for name in observers:
+        result = run_observer(config, trained, inputs, name, plant)
+        results.append(result)
+        log(f"[replay] {name:<12} {result.us_per_step:7.1f} µs/step, {result.valid.sum()} estimates")
+    duration = float(inputs.stamp[-1] - inputs.stamp[0])
+    metrics = {
+        "bag": str(bag),
+        "ground_truth": truth.kind if truth is not None else "none",
+        "samples": len(inputs), "duration_s": round(duration, 3), "torque_source": inputs.torque_source,
+        "dropped_samples": inputs.dropped, "decode_seconds": round(decode_seconds, 3),
+        "observers": {r.name: observer_metrics(r, truth) for r in results},
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    if write_bag:
+        write_estimates(out / "estimates.mcap", run, inputs, results, config)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    if plots:
+        from kvark_ros.tools.report import write_replay_report
+        write_replay_report(out, metrics, robot, inputs, truth, results)
+    total = time.perf_counter() - started
+    log(f"[replay] {len(observers)} observer(s) over {duration:.1f} s of data in {total:.1f} s")
+    return metrics
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "replay", help="run a bag through observers; write an output bag, metrics, plots and a report",
+        description="Replay a ROS 2 bag through one or more observers with the same Estimator the ROS node "
+                    "uses. Writes DIR/estimates.mcap (inputs plus /kvark/<observer>/... outputs), "
+                    "DIR/metrics.json, DIR/report.md and plots.")
+    parser.add_argument("--config", required=True, help="estimator config YAML")
+    parser.add_argument("--model", help="model directory (default: residual_model.model_dir of the config)")
+    parser.add_argument("--bag", required=True, help="bag to replay")
+    parser.add_argument("--observers", default="kvark",
+                        help=f"comma-separated observers or 'all' ({', '.join(OBSERVER_NAMES)}); default kvark")
+    parser.add_argument("--reference-bag", help="the same motion without the load, for two-run ground truth")
+    parser.add_argument("--plant", help="simulator plant file (needed by the oracle observer)")
+    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--no-bag", action="store_true", help="skip writing estimates.mcap")
+    parser.set_defaults(run=run)
+
+
+def parse_observers(text: str, plant_given: bool) -> list[str]:
+    """'all' or a comma list, checked against the known names."""
+    names = [n for n in OBSERVER_NAMES if n != "oracle" or plant_given] if text == "all" else text.split(",")
+    unknown = [name for name in names if name not in OBSERVER_NAMES]
+    if unknown:
+        raise SystemExit(f"kvark: error: unknown observer {unknown[0]!r}; known: {', '.join(OBSERVER_NAMES)}")
+    return names
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_config(args.config)
+    trained = load_model(args.model or config.model_dir, config.joint_names)
+    plant = None
+    if args.plant:
+        from kvark_ros.sim.plant import load_plant
+        plant = load_plant(args.plant, config.n_joints)
+    observers = parse_observers(args.observers, plant is not None)
+    replay(config, trained, Path(args.bag), Path(args.out), observers,
+           Path(args.reference_bag) if args.reference_bag else None, plant, write_bag=not args.no_bag,
+           log=lambda line: print(line, flush=True))
+    print(f"[replay] wrote {args.out}/metrics.json and report.md", flush=True)
+    return 0

@@ -1,0 +1,59 @@
+"""Markdown reports with tables and figures for replays and benchmarks."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from kvark_ros.tools.plots import plot_error_bars, plot_time_histories
+
+PLOTTED_OBSERVERS = ("kvark", "kf", "momentum", "oracle")   # time histories stay readable with a few lines
+AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
+
+
+def _cell(value: Any, digits: int = 3) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def metrics_table(observers: Mapping[str, Mapping[str, Any]]) -> str:
+    """One row per observer: joint RMSE, force/moment RMSE, |error| statistics, coverage, speed."""
+    keys = ("joint_rmse_mean", "force_rmse_mean", "moment_rmse_mean", "mean_abs", "p95", "max", "temporal_std",
+            "coverage95", "us_per_step")
+    header = ("| observer | joint RMSE (N·m) | force RMSE (N) | moment RMSE (N·m) | mean abs | p95 | max | "
+              "temporal std | coverage95 | µs/step |")
+    lines = [header, "|" + "---|" * (len(keys) + 1)]
+    for name, entry in observers.items():
+        lines.append(f"| {name} | " + " | ".join(_cell(entry.get(key)) for key in keys) + " |")
+    return "\n".join(lines)
+
+
+def write_replay_report(out: Path, metrics: Mapping[str, Any], robot: Any, inputs: Any, truth: Any,
+                        results: Sequence[Any]) -> list[Path]:
+    """report.md and figures for one replay."""
+    plotted = {r.name: r for r in results if r.name in PLOTTED_OBSERVERS} or {results[0].name: results[0]}
+    figures = [
+        plot_time_histories(inputs.stamp, None if truth is None else truth.tau_ext,
+                            {n: np.where(r.valid[:, None], r.tau_ext, np.nan) for n, r in plotted.items()},
+                            robot.joint_names, "τ_ext (N·m)", out / "joint_torques.png",
+                            {n: r.tau_std for n, r in plotted.items() if r.tau_std is not None}),
+        plot_time_histories(inputs.stamp, None if truth is None or truth.wrench is None else truth.wrench,
+                            {n: np.where(r.valid[:, None], r.wrench, np.nan) for n, r in plotted.items()},
+                            AXES, "wrench (N, N·m)", out / "wrench.png"),
+    ]
+    if truth is not None:
+        figures.append(plot_error_bars(metrics["observers"], "joint_rmse_mean", "joint RMSE (N·m)",
+                                       out / "joint_rmse.png"))
+    text = [f"# Replay of `{metrics['bag']}`", "",
+            f"- ground truth: {metrics['ground_truth']}",
+            f"- {metrics['samples']} samples over {metrics['duration_s']} s; τ_m from {metrics['torque_source']}; "
+            f"{metrics['dropped_samples']} samples without a fresh command dropped",
+            f"- bag decoding: {metrics['decode_seconds']} s", "",
+            metrics_table(metrics["observers"]), ""]
+    text += [f"![{path.stem}]({path.name})" for path in figures]
+    (out / "report.md").write_text("\n".join(text) + "\n")
+    return figures

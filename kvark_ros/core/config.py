@@ -53,6 +53,11 @@ class EstimatorConfig:
     ewma_rate: float
     nis_rate: float
     max_gap: float
+    command_max_age: float
+    queue_depth: int
+    contact_confidence: float
+    contact_debounce: float
+    diagnostics_period: float
 
     @property
     def n_joints(self) -> int:
@@ -117,6 +122,11 @@ _SCHEMA: dict[str, tuple[Callable, str, Any]] = {
     "filter.ewma_rate": (*_number(0.0, 1.0, low_open=True), 0.01),
     "filter.nis_rate": (*_number(0.0, 1.0, low_open=True), 0.01),
     "input.max_gap": (*_number(0.0, 10.0, low_open=True), 0.05),
+    "input.command_max_age": (*_number(0.0, 1.0, low_open=True), 0.01),
+    "input.queue_depth": (*_integer(1, 1000), 10),
+    "contact.confidence": (*_number(0.5, 1.0, low_open=True, high_open=True), 0.99),
+    "contact.debounce": (*_number(0.0, 1.0), 0.02),
+    "diagnostics.period": (*_number(0.0, 60.0, low_open=True), 1.0),
 }
 
 
@@ -178,6 +188,11 @@ def config_from_parameters(parameters: Mapping[str, Any], source: str = "configu
         ewma_rate=values["filter.ewma_rate"],
         nis_rate=values["filter.nis_rate"],
         max_gap=values["input.max_gap"],
+        command_max_age=values["input.command_max_age"],
+        queue_depth=values["input.queue_depth"],
+        contact_confidence=values["contact.confidence"],
+        contact_debounce=values["contact.debounce"],
+        diagnostics_period=values["diagnostics.period"],
     )
 
 

@@ -54,10 +54,16 @@ def test_virtual_measurement_sign_gives_torque_acting_on_the_robot(panda_config)
     assert np.allclose(x, tau_ext, atol=1e-3)
 
 
-@pytest.mark.parametrize("name, vb_variant", [(name, "paper") for name in VARIANTS] + [("kvark", "huang")])
-def test_observers_converge_to_a_step_external_torque(panda, panda_config, panda_trained, name, vb_variant):
+FORMS = [("momentum", "smoothed"), ("momentum", "paper"), ("difference", "paper"), ("difference", "huang")]
+
+
+@pytest.mark.parametrize("name, measurement, vb_variant",
+                         [(name, "momentum", "smoothed") for name in VARIANTS if name != "kvark"]
+                         + [("kf", "difference", "paper")] + [("kvark", *form) for form in FORMS])
+def test_observers_converge_to_a_step_external_torque(panda, panda_config, panda_trained, name, measurement,
+                                                      vb_variant):
     """Synthetic Panda with Gaz friction and 0.02 N·m torque noise; step τ_ext at t = 2 s."""
-    config = replace(panda_config, vb_variant=vb_variant)
+    config = replace(panda_config, measurement=measurement, vb_variant=vb_variant)
     stream = synthetic_stream(panda, 8.0, seed=11, external=step_torque(2.0, STEP))
     estimator = Estimator(config, panda, make_observer(name, panda_trained, config))
     estimates = np.zeros_like(stream.tau_ext)
@@ -77,7 +83,7 @@ def test_observers_converge_to_a_step_external_torque(panda, panda_config, panda
 
 @pytest.mark.parametrize("vb_variant, steps", [("paper", 100_000), ("huang", 20_000)])
 def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_config, rng, vb_variant, steps):
-    config = replace(panda_config, vb_variant=vb_variant)
+    config = replace(panda_config, measurement="difference", vb_variant=vb_variant)
     observer = KVARKFilter("kvark", flat_residual(7), tuning(7), config)
     p_prev, u = np.zeros(7), np.zeros(7)
     for k in range(steps):
@@ -92,7 +98,7 @@ def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_confi
 
 
 def test_vb_process_noise_grows_when_the_external_torque_jumps(panda_config):
-    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), panda_config)
+    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), replace(panda_config, vb_variant="paper"))
     p_prev, u = np.zeros(7), np.zeros(7)
     for _ in range(500):
         observer.step(0.002, np.zeros(7), p_prev, p_prev, u)
@@ -115,7 +121,7 @@ def test_heteroscedastic_variants_trust_the_measurement_less_where_kmp_is_unsure
 
 
 def test_reset_restores_the_initial_state(panda_config):
-    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), panda_config)
+    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), replace(panda_config, vb_variant="paper"))
     observer.step(0.002, np.ones(7), np.ones(7), np.zeros(7), np.zeros(7))
     observer.reset()
     assert np.array_equal(observer.x, np.zeros(7))

@@ -22,7 +22,7 @@ NODE_NAME = "kvark_estimator"
 OBSERVER_NAMES = ("kvark", "kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "gmr_gp", "gpadkf", "nnadkf",
                   "momentum", "kfmo", "sh_akfmo", "vbkfmo_q", "eso", "oracle")
 WRENCH_FRAMES = ("base", "end_effector")
-VB_VARIANTS = ("paper", "huang")
+VB_VARIANTS = ("paper", "huang", "smoothed")
 MEASUREMENTS = ("momentum", "difference")
 
 
@@ -116,7 +116,7 @@ _SCHEMA: dict[str, tuple[Callable, str, Any]] = {
     "filter.initial_covariance": (*_number(0.0, 1e6, low_open=True), 1.0),
     "filter.vb_iterations": (*_integer(1, 50), 3),
     "filter.vb_forgetting": (*_number(0.0, 1.0, low_open=True), 0.999),
-    "filter.vb_variant": (*_choice(VB_VARIANTS), "paper"),
+    "filter.vb_variant": (*_choice(VB_VARIANTS), "smoothed"),
     "filter.measurement": (*_choice(MEASUREMENTS), "momentum"),
     "filter.huang_tau": (*_number(0.0, 1e6, low_open=True), 300.0),
     "filter.ewma_rate": (*_number(0.0, 1.0, low_open=True), 0.01),
@@ -164,7 +164,10 @@ def config_from_parameters(parameters: Mapping[str, Any], source: str = "configu
         values[key] = value
     if values["filter.vb_variant"] == "huang" and values["filter.measurement"] == "momentum":
         raise ConfigError(f"{source}: key 'filter.vb_variant' huang is implemented for "
-                          "filter.measurement: difference only; allowed with momentum: paper")
+                          "filter.measurement: difference only; allowed with momentum: paper, smoothed")
+    if values["filter.vb_variant"] == "smoothed" and values["filter.measurement"] == "difference":
+        raise ConfigError(f"{source}: key 'filter.vb_variant' smoothed is implemented for "
+                          "filter.measurement: momentum only; allowed with difference: paper, huang")
     mass = values["robot_model.payload.mass"]
     payload = None if mass == 0.0 else Payload(
         mass, tuple(values["robot_model.payload.com"]), tuple(values["robot_model.payload.inertia"]))

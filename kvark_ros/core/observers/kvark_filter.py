@@ -91,6 +91,9 @@ class KVARKFilter(Observer):
         super().__init__(residual.n_joints)
         if variant not in VARIANTS:
             raise ValueError(f"unknown K-VARK variant '{variant}'; known: {', '.join(VARIANTS)}")
+        if VARIANTS[variant].vb and config.vb_variant not in ("paper", "huang"):
+            raise ValueError(f"filter.vb_variant {config.vb_variant} is implemented for filter.measurement: "
+                             "momentum only")
         if len(tuning.process_noise_density) != self.n:
             raise ValueError(f"filter tuning has {len(tuning.process_noise_density)} joints, "
                              f"the residual model {self.n}")

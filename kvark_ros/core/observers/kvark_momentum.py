@@ -46,6 +46,8 @@ class KVARKMomentumFilter(KFMomentumObserver):
                  config: EstimatorConfig, name: str | None = None) -> None:
         if variant not in VARIANTS:
             raise ValueError(f"unknown K-VARK variant '{variant}'; known: {', '.join(VARIANTS)}")
+        if config.vb_variant == "huang":
+            raise ValueError("filter.vb_variant huang is implemented for filter.measurement: difference only")
         if tuning.residual_variance is None:
             raise ValueError("the momentum-state K-VARK needs tuning.residual_variance; retrain the model")
         self.variant = VARIANTS[variant]
@@ -113,10 +115,20 @@ class KVARKMomentumFilter(KFMomentumObserver):
         dof_pred = rho * (self.vb_dof - 2.0) + 2.0                      # λ_{k|k−1}
         scale_pred = rho * self.vb_scale                                # Υ_{k|k−1}
         sigma_d = self.Sigma_d
+        c_prev = self.c                                                 # P_{k−1|k−1}, τ block
+        smoothed = self.config.vb_variant == "smoothed"
         for _ in range(self.config.vb_iterations):
             tau = self._update(p_pred, tau_pred, a, b, c, nu, R, sigma_d, h)   # eqs. 42-45
             e = tau - tau_pred                                          # eq. 34
+            if smoothed:
+                # E[(τ_k − τ_{k−1})² | y_1:k] from a lag-one smoother of the random walk: the
+                # statistic eq. 38 stands for, without its bias (e² + P_{k|k} over-counts by P).
+                gain = c_prev / (c_prev + sigma_d)
+                increment = (1.0 - gain) ** 2 * e * e + self.c * (1.0 - 2.0 * gain) + c_prev \
+                    + gain * gain * (self.c - c_prev - sigma_d)
+            else:
+                increment = e * e + self.c                              # eq. 38 as written
             self.vb_dof = dof_pred + 1.0                                # eq. 37
-            self.vb_scale = scale_pred + e * e + self.c                 # eq. 38
+            self.vb_scale = scale_pred + increment                      # eq. 38
             sigma_d = self.vb_scale / (self.vb_dof - 2.0)               # eqs. 39-40 (n = 1 per joint)
         self.Sigma_d = sigma_d

@@ -5,7 +5,13 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.kvark-installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test bench bags model benchmark clean
+
+KVARK   := $(BIN)/kvark
+CONFIG  := config/panda.yaml
+PLANT   := kvark_ros/sim/plants/panda_default.yaml
+SCENES  := payload contact collision
+RESULTS ?= results
 
 $(STAMP): setup.py setup.cfg
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 10) else "kvark_ros needs Python 3.10 or newer")'
@@ -14,9 +20,30 @@ $(STAMP): setup.py setup.cfg
 	$(BIN)/python -m pip install --quiet -e '.[sim,test]'
 	touch $(STAMP)
 
-## demo: the main job on a laptop (no robot, no ROS)
+## demo: the main job on a laptop (no robot, no ROS): committed bags -> train -> replay every observer
 demo: $(STAMP)
-	$(BIN)/kvark bench --robot panda --observer all
+	$(KVARK) train --config $(CONFIG) --bags bags/panda_excitation_1 bags/panda_excitation_2 --out $(RESULTS)/model
+	for scene in $(SCENES); do \
+	  $(KVARK) replay --config $(CONFIG) --model $(RESULTS)/model --bag bags/panda_$$scene \
+	    --observers all --plant $(PLANT) --out $(RESULTS)/$$scene || exit 1; \
+	done
+	@echo "demo results: $(RESULTS)/<scenario>/report.md, metrics.json, plots; model in $(RESULTS)/model"
+
+## bags: regenerate the committed sample bags (simulated Panda)
+bags: $(STAMP)
+	$(KVARK) simulate --robot panda --scenario excitation --seed 1 --duration 8 --out bags/panda_excitation_1 --overwrite
+	$(KVARK) simulate --robot panda --scenario excitation --seed 2 --duration 8 --out bags/panda_excitation_2 --overwrite
+	for scene in $(SCENES); do \
+	  $(KVARK) simulate --robot panda --scenario $$scene --seed 3 --duration 5 --out bags/panda_$$scene --overwrite || exit 1; \
+	done
+
+## model: retrain the committed model from the committed bags
+model: $(STAMP)
+	$(KVARK) train --config $(CONFIG) --bags bags/panda_excitation_1 bags/panda_excitation_2 --out models/panda
+
+## benchmark: the full simulated comparison of every observer (see README, Results)
+benchmark: $(STAMP)
+	$(KVARK) benchmark --robot panda --out $(RESULTS)/benchmark
 
 ## test: the whole test suite
 test: $(STAMP)

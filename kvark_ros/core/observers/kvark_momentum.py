@@ -121,11 +121,11 @@ class KVARKMomentumFilter(KFMomentumObserver):
             tau = self._update(p_pred, tau_pred, a, b, c, nu, R, sigma_d, h)   # eqs. 42-45
             e = tau - tau_pred                                          # eq. 34
             if smoothed:
-                # E[(τ_k − τ_{k−1})² | y_1:k] from a lag-one smoother of the random walk: the
-                # statistic eq. 38 stands for, without its bias (e² + P_{k|k} over-counts by P).
-                gain = c_prev / (c_prev + sigma_d)
-                increment = (1.0 - gain) ** 2 * e * e + self.c * (1.0 - 2.0 * gain) + c_prev \
-                    + gain * gain * (self.c - c_prev - sigma_d)
+                # E[(τ_k − τ_{k−1})² | y_1:k] from a lag-one smoother of the random walk (gain
+                # G = P_{k−1}/(P_{k−1} + Σ_d)), the statistic eq. 38 stands for, without its bias
+                # (e² + P_{k|k} over-counts by about P): with s = 1 − G it is s (s (e² + P_{k|k}) + P_{k−1}).
+                s = sigma_d / (c_prev + sigma_d)
+                increment = s * (s * (e * e + self.c) + c_prev)
             else:
                 increment = e * e + self.c                              # eq. 38 as written
             self.vb_dof = dof_pred + 1.0                                # eq. 37

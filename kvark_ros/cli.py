@@ -6,12 +6,13 @@ import sys
 
 from kvark_ros import __version__
 from kvark_ros.core.config import ConfigError
+from kvark_ros.core.observers import ObserverError
 from kvark_ros.core.residual_model import ResidualModelError
 from kvark_ros.core.robot_model import RobotModelError
 from kvark_ros.io.bag import BagError
 from kvark_ros.tools import bench, benchmark, replay, train
 
-USER_ERRORS = (ConfigError, ResidualModelError, RobotModelError, BagError, FileNotFoundError)
+USER_ERRORS = (ConfigError, ResidualModelError, RobotModelError, BagError, ObserverError, FileNotFoundError)
 
 
 def build_parser() -> argparse.ArgumentParser:

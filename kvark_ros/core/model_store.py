@@ -65,15 +65,27 @@ def save_model(directory: str | os.PathLike, model: TrainedModel) -> None:
                     "momentum_noise": None if model.momentum_noise is None else model.momentum_noise.to_dict(),
                     "info": model.info}
         (staging / MODEL_FILE).write_text(yaml.safe_dump(document, sort_keys=False))
-        backup = target.with_name(f".{target.name}.previous")
-        if target.exists():
-            shutil.rmtree(backup, ignore_errors=True)
-            os.replace(target, backup)
-        os.replace(staging, target)
-        shutil.rmtree(backup, ignore_errors=True)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
+    _swap_in(staging, target)
+
+
+def _swap_in(staging: Path, target: Path) -> None:
+    """Replace ``target`` by ``staging``; on any failure the previous ``target`` is put back."""
+    backup = target.with_name(f".{target.name}.previous")
+    shutil.rmtree(backup, ignore_errors=True)
+    had_target = target.exists()
+    try:
+        if had_target:
+            os.replace(target, backup)
+        os.replace(staging, target)
+    except BaseException:
+        if had_target and backup.exists() and not target.exists():
+            os.replace(backup, target)
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    shutil.rmtree(backup, ignore_errors=True)
 
 
 def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None = None) -> TrainedModel:

@@ -1,7 +1,7 @@
 """``kvark replay``: run a bag through one or more observers, as the ROS node would.
 
 One pass over the bag per observer through the same ``Estimator`` the node uses. Writes
-``estimates.mcap`` (the bag's inputs plus each observer's outputs under ``/kvark/<observer>/``),
+``estimates/`` (a rosbag2 MCAP bag: the inputs plus each observer's outputs under ``/kvark/<observer>/``),
 ``metrics.json`` (paper v2 Tables IV-V), ``report.md`` and plots.
 
 Ground truth, in order of preference: the true external torque the bag carries (simulation),
@@ -22,6 +22,7 @@ import numpy as np
 from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, load_config
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.model_store import TrainedModel, load_model
+from kvark_ros.core.observers import make_observer
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.io.alignment import EstimatorInputs, estimator_inputs
 from kvark_ros.io.bag import BagError, BagWriter, RecordedRun, read_run, write_run_messages
@@ -74,8 +75,7 @@ def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, i
     if run.external_torque is not None:
         tau = _align(inputs.stamp, run.external_torque.stamp, run.external_torque.effort)
         if wrench is None:    # no wrist sensor: the true torque through the same pseudo-inverse (eq. 39)
-            wrench = np.array([robot.wrench_from_torque(q, t, None, config.wrench_damping, config.wrench_frame)[0]
-                               for q, t in zip(inputs.q, np.nan_to_num(tau))])
+            wrench = _wrench_of_torque(robot, config, inputs.q, tau)
         return GroundTruth("true external joint torque (/ground_truth/external_joint_torque)", tau, wrench)
     if run.wrench is not None:
         tau = np.array([robot.sensor_torque(q, run.wrench.frame_id, w) if np.isfinite(w).all()
@@ -84,8 +84,16 @@ def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, i
     if reference is not None:
         elapsed = inputs.stamp - inputs.stamp[0]
         free = _align(elapsed, reference.stamp - reference.stamp[0], reference.tau_m)
-        return GroundTruth("two-run difference against the reference bag (v2 eq. 40)", free - inputs.tau_m, None)
+        tau = free - inputs.tau_m
+        return GroundTruth("two-run difference against the reference bag (v2 eq. 40)", tau,
+                           _wrench_of_torque(robot, config, inputs.q, tau))
     return None
+
+
+def _wrench_of_torque(robot: RobotModel, config: EstimatorConfig, q: np.ndarray, tau: np.ndarray) -> np.ndarray:
+    """Ground-truth wrench from a ground-truth torque through the estimator's own mapping (eq. 39)."""
+    return np.array([robot.wrench_from_torque(qk, tk, None, config.wrench_damping, config.wrench_frame)[0]
+                     if np.isfinite(tk).all() else np.full(6, np.nan) for qk, tk in zip(q, tau)])
 
 
 def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: EstimatorInputs, name: str,
@@ -136,6 +144,8 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
            reference_bag: Path | None = None, plant: Any = None, write_bag: bool = True,
            plots: bool = True, log=print) -> dict:
     """Replay ``bag`` through ``observers``; write outputs under ``out``; return metrics.json's content."""
+    for name in observers:           # fail on a model or plant that cannot serve an observer before decoding
+        make_observer(name, trained, config, plant)
     started = time.perf_counter()
     run = read_run(bag, config.joint_names)
     inputs = estimator_inputs(run, path=str(bag))
@@ -162,7 +172,7 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
     }
     out.mkdir(parents=True, exist_ok=True)
     if write_bag:
-        write_estimates(out / "estimates.mcap", run, inputs, results, config)
+        write_estimates(out / "estimates", run, inputs, results, config)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     if plots:
         from kvark_ros.tools.report import write_replay_report
@@ -176,7 +186,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "replay", help="run a bag through observers; write an output bag, metrics, plots and a report",
         description="Replay a ROS 2 bag through one or more observers with the same Estimator the ROS node "
-                    "uses. Writes DIR/estimates.mcap (inputs plus /kvark/<observer>/... outputs), "
+                    "uses. Writes the bag DIR/estimates/ (estimates.mcap: inputs plus /kvark/<observer>/... outputs), "
                     "DIR/metrics.json, DIR/report.md and plots.")
     parser.add_argument("--config", required=True, help="estimator config YAML")
     parser.add_argument("--model", help="model directory (default: residual_model.model_dir of the config)")
@@ -186,7 +196,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--reference-bag", help="the same motion without the load, for two-run ground truth")
     parser.add_argument("--plant", help="simulator plant file (needed by the oracle observer)")
     parser.add_argument("--out", required=True, help="output directory")
-    parser.add_argument("--no-bag", action="store_true", help="skip writing estimates.mcap")
+    parser.add_argument("--no-bag", action="store_true", help="skip writing the estimates bag")
     parser.set_defaults(run=run)
 
 

@@ -30,11 +30,16 @@ from kvark_ros.core.observers.momentum_observers import MOMENTUM_OBSERVER_NAMES,
 if TYPE_CHECKING:
     from kvark_ros.core.model_store import TrainedModel
 
-__all__ = ["FilterTuning", "Observer", "KVARKFilter", "make_observer", "OBSERVER_NAMES", "OracleResidual"]
+__all__ = ["FilterTuning", "Observer", "ObserverError", "KVARKFilter", "make_observer", "OBSERVER_NAMES",
+           "OracleResidual"]
 
 # Learned-residual baselines: the K-VARK filter variant each one runs in.
 LEARNED_BASELINE_VARIANTS = {"gmr_gp": "kvark", "gpadkf": "kmp_kf_ewma", "nnadkf": "kf"}
 ORACLE_VARIANCE = 1e-4   # N²·m²: the oracle's residual is exact up to the plant's noise
+
+
+class ObserverError(ValueError):
+    """An observer cannot be built from what was given (model, plant); the message says what to do."""
 
 
 class OracleResidual:
@@ -60,7 +65,7 @@ def _kvark(variant: str, residual: Any, tuning: FilterTuning, trained: "TrainedM
     if config.measurement == "difference":
         return KVARKFilter(variant, residual, tuning, config, name=name)
     if trained.momentum_noise is None:
-        raise ValueError("filter.measurement: momentum needs the model's momentum noise; retrain the model")
+        raise ObserverError("filter.measurement: momentum needs the model's momentum noise; retrain the model")
     return KVARKMomentumFilter(variant, residual, tuning, trained.momentum_noise, config, name=name)
 
 
@@ -70,7 +75,7 @@ def make_observer(name: str, trained: "TrainedModel", config: EstimatorConfig, p
         return _kvark(name, trained.residual, trained.tuning, trained, config, name)
     if name in LEARNED_BASELINE_VARIANTS:
         if name not in trained.baselines:
-            raise ValueError(f"observer '{name}' needs its residual model, which this model directory lacks; "
+            raise ObserverError(f"observer '{name}' needs its residual model, which this model directory lacks; "
                              "retrain without --no-baselines")
         return _kvark(LEARNED_BASELINE_VARIANTS[name], trained.baselines[name], trained.baseline_tunings[name],
                       trained, config, name)
@@ -78,7 +83,7 @@ def make_observer(name: str, trained: "TrainedModel", config: EstimatorConfig, p
         return make_momentum_observer(name, len(trained.joint_names), trained.momentum_noise, config)
     if name == "oracle":
         if plant is None:
-            raise ValueError("observer 'oracle' needs the simulator's plant file (pass --plant FILE)")
+            raise ObserverError("observer 'oracle' needs the simulator's plant file (pass --plant FILE)")
         return _kvark("kvark", OracleResidual(plant, len(trained.joint_names)), trained.tuning, trained, config,
                       "oracle")
-    raise ValueError(f"unknown observer '{name}'; known: {', '.join(OBSERVER_NAMES)}")
+    raise ObserverError(f"unknown observer '{name}'; known: {', '.join(OBSERVER_NAMES)}")

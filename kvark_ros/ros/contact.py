@@ -1,0 +1,108 @@
+"""The contact flag: a debounced, variance-aware chi-square test on τ_ext. ROS-free.
+
+Under "no contact" the true external torque is zero and the estimate τ̂ is noise, so
+``d² = τ̂ᵀ S⁻¹ τ̂`` is χ²-distributed with n degrees of freedom when S is the covariance of τ̂
+under that hypothesis; contact is declared when ``d² > χ²_n(confidence)``. The threshold is
+computed once (``scipy.stats.chi2.ppf``) and again only when the confidence changes.
+
+Which S. The filter's P alone is the wrong covariance here: it describes the filter's tracking
+error, while in free motion τ̂ is dominated by what the residual model gets wrong, which the
+filter follows like a slowly varying external torque. Measured on simulated Panda runs with a
+model trained on the committed excitation bags, ``τ̂ᵀ P⁻¹ τ̂`` exceeded χ²_7(0.99) in 15-50 % of
+contact-free samples. :func:`contact_covariance` therefore adds the residual model's own
+uncertainty at the current velocity (the KMP variance of eq. 23, calibrated at training time
+to 95 % held-out coverage): ``S = P + diag(σ²_r(q̇))``. On the same runs that gave no false
+positives in free motion while table contact (~15 N) and a 20-40 N push were flagged.
+
+Fallback for observers without a covariance (``momentum``, ``eso``) and, in general, for
+observers that do not subtract a learned residual: their τ̂ also carries the friction the
+residual model would have removed, so the residual's mean enters as uncertainty too:
+``S = (P or 0) + diag(μ_r(q̇)² + σ²_r(q̇))``.
+
+Debounce: the published flag changes only after the raw test result has differed from it
+for ``debounce`` seconds of sample time (stamps, not wall time); ``debounce = 0`` follows the
+raw result.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.stats import chi2
+
+
+def contact_covariance(tau_cov: np.ndarray | None, residual_mean: np.ndarray, residual_var: np.ndarray,
+                    residual_compensated: bool) -> np.ndarray:
+    """S of the contact test (module docstring): (n, n) from P (or None) and the residual model at q̇."""
+    extra = residual_var if residual_compensated else residual_var + residual_mean * residual_mean
+    n = len(extra)
+    covariance = np.zeros((n, n)) if tau_cov is None else np.array(tau_cov, dtype=float)
+    covariance.flat[:: n + 1] += extra
+    return covariance
+
+
+class ContactDetector:
+    """Debounced ``τ̂ᵀ S⁻¹ τ̂ > χ²_n(confidence)`` (module docstring).
+
+    ``update`` returns the debounced flag. A covariance that is not finite and positive
+    definite leaves the flag unchanged and is counted in ``invalid_covariances``.
+    """
+
+    def __init__(self, n: int, confidence: float, debounce: float) -> None:
+        self.n = n
+        self._confidence: float | None = None
+        self.threshold = math.nan
+        self.debounce = 0.0
+        self.invalid_covariances = 0
+        self.configure(confidence, debounce)
+        self.reset()
+
+    def configure(self, confidence: float, debounce: float) -> None:
+        """Set the test's confidence (threshold recomputed only if it changed) and the debounce time (s)."""
+        if not 0.0 < confidence < 1.0:
+            raise ValueError(f"contact confidence must be in (0, 1), got {confidence}")
+        if not debounce >= 0.0:
+            raise ValueError(f"contact debounce must be >= 0 s, got {debounce}")
+        if confidence != self._confidence:
+            self.threshold = float(chi2.ppf(confidence, self.n))
+            self._confidence = confidence
+        self.debounce = float(debounce)
+
+    @property
+    def confidence(self) -> float:
+        return float(self._confidence)
+
+    def reset(self) -> None:
+        """No contact, nothing pending (after a filter reset)."""
+        self.flag = False
+        self.statistic = math.nan
+        self._since: float | None = None
+
+    @staticmethod
+    def statistic_of(tau: np.ndarray, covariance: np.ndarray) -> float | None:
+        """``τᵀ S⁻¹ τ`` through a Cholesky factor; ``None`` if S is not finite positive definite."""
+        try:
+            factor = np.linalg.cholesky(covariance)
+        except np.linalg.LinAlgError:
+            return None
+        z = np.linalg.solve(factor, tau)
+        value = float(z @ z)
+        return value if math.isfinite(value) else None
+
+    def update(self, stamp: float, tau: np.ndarray, covariance: np.ndarray) -> bool:
+        """Test one estimate (stamp s, τ̂ (n,), S (n, n)); return the debounced contact flag."""
+        statistic = self.statistic_of(tau, covariance)
+        if statistic is None:
+            self.invalid_covariances += 1
+            return self.flag
+        self.statistic = statistic
+        raw = statistic > self.threshold
+        if raw == self.flag:
+            self._since = None
+        else:
+            if self._since is None:
+                self._since = stamp
+            if stamp - self._since >= self.debounce:
+                self.flag = raw
+                self._since = None
+        return self.flag

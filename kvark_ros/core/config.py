@@ -115,7 +115,7 @@ _SCHEMA: dict[str, tuple[Callable, str, Any]] = {
     "wrench.damping": (*_number(0.0, 10.0), 0.05),
     "filter.initial_covariance": (*_number(0.0, 1e6, low_open=True), 1.0),
     "filter.vb_iterations": (*_integer(1, 50), 1),
-    "filter.vb_forgetting": (*_number(0.0, 1.0, low_open=True), 0.9),
+    "filter.vb_forgetting": (*_number(0.0, 1.0, low_open=True), 0.99),
     "filter.vb_variant": (*_choice(VB_VARIANTS), "smoothed"),
     "filter.measurement": (*_choice(MEASUREMENTS), "momentum"),
     "filter.huang_tau": (*_number(0.0, 1e6, low_open=True), 300.0),

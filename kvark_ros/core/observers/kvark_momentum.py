@@ -115,20 +115,38 @@ class KVARKMomentumFilter(KFMomentumObserver):
         dof_pred = rho * (self.vb_dof - 2.0) + 2.0                      # λ_{k|k−1}
         scale_pred = rho * self.vb_scale                                # Υ_{k|k−1}
         sigma_d = self.Sigma_d
-        c_prev = self.c                                                 # P_{k−1|k−1}, τ block
+        previous = (self.a, self.b, self.c)                            # P_{k−1|k−1} per joint
         smoothed = self.config.vb_variant == "smoothed"
         for _ in range(self.config.vb_iterations):
             tau = self._update(p_pred, tau_pred, a, b, c, nu, R, sigma_d, h)   # eqs. 42-45
             e = tau - tau_pred                                          # eq. 34
             if smoothed:
-                # E[(τ_k − τ_{k−1})² | y_1:k] from a lag-one smoother of the random walk (gain
-                # G = P_{k−1}/(P_{k−1} + Σ_d)), the statistic eq. 38 stands for, without its bias
-                # (e² + P_{k|k} over-counts by about P): with s = 1 − G it is s (s (e² + P_{k|k}) + P_{k−1}).
-                s = sigma_d / (c_prev + sigma_d)
-                increment = s * (s * (e * e + self.c) + c_prev)
+                increment = self._smoothed_increment(previous, (a, b, c), e, self.p_hat - p_pred, h)
             else:
                 increment = e * e + self.c                              # eq. 38 as written
             self.vb_dof = dof_pred + 1.0                                # eq. 37
             self.vb_scale = scale_pred + increment                      # eq. 38
             sigma_d = self.vb_scale / (self.vb_dof - 2.0)               # eqs. 39-40 (n = 1 per joint)
         self.Sigma_d = sigma_d
+
+    def _smoothed_increment(self, previous, predicted_without_q, e, dp, h) -> np.ndarray:
+        """``E[(τ_k − τ_{k−1})² | y_1:k]`` per joint from a lag-one Rauch-Tung-Striebel smoother.
+
+        The statistic eq. 38 stands for. As written, ``e² + P_{k|k}`` counts the posterior
+        uncertainty of τ_k as if τ_{k−1} were known, so Σ_d can never fall below P_{k|k} (and in
+        the momentum form a large Σ_d makes P_{k|k} large: a trap). With G = P_{k−1} Fᵀ (P⁻)⁻¹:
+        ``ŵ = e − (G D)_τ`` (D = x̂_k − x̂⁻), ``P_{k−1|k} = P_{k−1} + G (P_k − P⁻) Gᵀ`` and
+        ``E[w²] = ŵ² + P_k,ττ + P_{k−1|k},ττ − 2 (P_k Gᵀ)_ττ``; 2×2 blocks in closed form.
+        """
+        a0, b0, c0 = previous
+        q0, q1, q2 = self._last_q
+        am, bm, cm = predicted_without_q[0] + q0, predicted_without_q[1] + q1, predicted_without_q[2] + q2  # P⁻
+        det = am * cm - bm * bm
+        r1, r2 = b0 + h * c0, c0                                        # τ row of P_{k−1} Fᵀ
+        g1 = (r1 * cm - r2 * bm) / det                                  # τ row of G = P_{k−1} Fᵀ (P⁻)⁻¹
+        g2 = (r2 * am - r1 * bm) / det
+        w_hat = e - (g1 * dp + g2 * e)
+        da, db, dc = self.a - am, self.b - bm, self.c - cm              # P_k − P⁻
+        smoothed_prev = c0 + g1 * g1 * da + 2.0 * g1 * g2 * db + g2 * g2 * dc
+        cross = self.b * g1 + self.c * g2
+        return np.maximum(w_hat * w_hat + self.c + smoothed_prev - 2.0 * cross, 0.0)

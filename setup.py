@@ -10,7 +10,7 @@ def _tree(folder: str) -> list[tuple[str, list[str]]]:
     """data_files entries that install ``folder`` under share/kvark_ros, keeping sub-folders."""
     entries: dict[str, list[str]] = {}
     for path in glob(f"{folder}/**/*", recursive=True):
-        if "." in path.rsplit("/", 1)[-1]:
+        if "." in path.rsplit("/", 1)[-1] and "__pycache__" not in path:
             target = f"share/{PACKAGE}/" + path.rsplit("/", 1)[0]
             entries.setdefault(target, []).append(path)
     return sorted(entries.items())

@@ -58,6 +58,7 @@ from kvark_ros.core.residual_model import (
     ResidualModelError,
     _check_training_data,
     _frozen_float_array,
+    freeze_positive_vectors,
     _read_arrays,
     _write_atomically,
     fit_gmr_reference,
@@ -130,14 +131,7 @@ class GPHyperparameters:
     noise_var: np.ndarray
 
     def __post_init__(self) -> None:
-        for key in _GP_HYPER_KEYS:
-            array = _frozen_float_array(key, getattr(self, key), ndim=1)
-            if np.any(array <= 0.0):
-                raise ResidualModelError(f"{key} must be strictly positive, got {array}")
-            object.__setattr__(self, key, array)
-        shapes = {getattr(self, key).shape for key in _GP_HYPER_KEYS}
-        if len(shapes) != 1:
-            raise ResidualModelError(f"hyperparameter arrays differ in shape: {shapes}")
+        freeze_positive_vectors(self, _GP_HYPER_KEYS)
 
     @property
     def n_joints(self) -> int:

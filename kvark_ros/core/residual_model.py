@@ -22,7 +22,7 @@ import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 import scipy.linalg
@@ -64,6 +64,18 @@ _REFERENCE_KEYS = ("s", "mu", "sigma2")
 _HYPER_KEYS = ("length_scale", "sigma_f2", "lambda1", "lambda2")
 
 
+def freeze_positive_vectors(instance: Any, keys: Sequence[str]) -> None:
+    """Replace each field ``keys`` of a frozen dataclass by a read-only float vector, all > 0, one length."""
+    for key in keys:
+        array = _frozen_float_array(key, getattr(instance, key), ndim=1)
+        if np.any(array <= 0.0):
+            raise ResidualModelError(f"{key} must be strictly positive, got {array}")
+        object.__setattr__(instance, key, array)
+    shapes = {getattr(instance, key).shape for key in keys}
+    if len(shapes) != 1:
+        raise ResidualModelError(f"hyperparameter arrays differ in shape: {shapes}")
+
+
 class ResidualModelError(ValueError):
     """Invalid residual-model parameters, or a model file that cannot be loaded."""
 
@@ -97,14 +109,7 @@ class KMPHyperparameters:
     lambda2: np.ndarray  # variance regularisation (eq. 23)
 
     def __post_init__(self) -> None:
-        for key in _HYPER_KEYS:
-            array = _frozen_float_array(key, getattr(self, key), ndim=1)
-            if np.any(array <= 0.0):
-                raise ResidualModelError(f"{key} must be strictly positive, got {array}")
-            object.__setattr__(self, key, array)
-        shapes = {getattr(self, key).shape for key in _HYPER_KEYS}
-        if len(shapes) != 1:
-            raise ResidualModelError(f"hyperparameter arrays differ in shape: {shapes}")
+        freeze_positive_vectors(self, _HYPER_KEYS)
 
     @property
     def n_joints(self) -> int:

@@ -8,7 +8,7 @@ computed once (``scipy.stats.chi2.ppf``) and again only when the confidence chan
 Which S. The filter's P alone is the wrong covariance here: it describes the filter's tracking
 error, while in free motion τ̂ is dominated by what the residual model gets wrong, which the
 filter follows like a slowly varying external torque. Measured on simulated Panda runs with a
-model trained on the committed excitation bags, ``τ̂ᵀ P⁻¹ τ̂`` exceeded χ²_7(0.99) in 15-50 % of
+model trained on the committed excitation bags, ``τ̂ᵀ P⁻¹ τ̂`` exceeded χ²_7(0.99) in 5-50 % of
 contact-free samples. :func:`contact_covariance` therefore adds the residual model's own
 uncertainty at the current velocity (the KMP variance of eq. 23, calibrated at training time
 to 95 % held-out coverage): ``S = P + diag(σ²_r(q̇))``. On the same runs that gave no false

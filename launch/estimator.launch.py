@@ -1,0 +1,75 @@
+"""Launch the kvark_ros estimator node (``kvark_estimator``).
+
+    ros2 launch kvark_ros estimator.launch.py [config:=FILE] [namespace:=NS] [torque_source:=SOURCE]
+                                              [joint_states:=TOPIC] [effort_commands:=TOPIC]
+
+config         the estimator's parameter file (default: share/kvark_ros/config/panda.yaml); the same
+               YAML that ``kvark train`` / ``kvark replay`` read (``kvark_estimator: ros__parameters:``).
+namespace      namespace of the node; its outputs are then /NS/kvark_estimator/..., and its inputs
+               NS/joint_states, NS/effort_commands, NS/robot_description.
+torque_source  effort_commands (Float64MultiArray), effort_commands_joint_state (JointState effort)
+               or joint_states_effort (the effort field of joint_states).
+joint_states, effort_commands
+               the input topics (remappings; default: the node's own relative names), e.g.
+               joint_states:=/franka/joint_states or effort_commands:=/forward_effort_controller/commands.
+
+The file's ``kvark_estimator.ros__parameters`` are passed to the node as a parameter dictionary
+rather than as the file itself: a file keyed ``kvark_estimator`` only matches a node in the root
+namespace, while a dictionary applies under any ``namespace``. Relative ``residual_model.model_dir``
+and ``robot_model.urdf`` paths are resolved as ``kvark`` resolves them: against the folder above
+the one holding the config file (a package root with config/ and models/).
+"""
+import os
+
+import yaml
+from ament_index_python.packages import get_package_share_directory
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.substitutions import LaunchConfiguration
+from launch_ros.actions import Node
+
+NODE_NAME = "kvark_estimator"
+PATH_KEYS = (("residual_model", "model_dir"), ("robot_model", "urdf"))
+
+
+def estimator_parameters(config_path: str) -> dict:
+    """``kvark_estimator.ros__parameters`` of the config file, relative paths made absolute."""
+    with open(config_path) as stream:
+        document = yaml.safe_load(stream)
+    try:
+        parameters = document[NODE_NAME]["ros__parameters"]
+    except (TypeError, KeyError) as exc:
+        raise RuntimeError(f"{config_path}: expected a top-level '{NODE_NAME}: ros__parameters:' mapping") from exc
+    root = os.path.dirname(os.path.dirname(os.path.abspath(config_path)))
+    for group, key in PATH_KEYS:
+        value = (parameters.get(group) or {}).get(key)
+        if isinstance(value, str) and value and not os.path.isabs(value) and ":" not in value \
+                and not value.startswith("<") and os.path.exists(os.path.join(root, value)):
+            parameters[group][key] = os.path.join(root, value)
+    return parameters
+
+
+def _estimator_node(context, *args, **kwargs):
+    parameters = estimator_parameters(LaunchConfiguration("config").perform(context))
+    parameters["torque_source"] = LaunchConfiguration("torque_source").perform(context)
+    return [Node(package="kvark_ros", executable="estimator_node", name=NODE_NAME,
+                 namespace=LaunchConfiguration("namespace"), parameters=[parameters],
+                 remappings=[("joint_states", LaunchConfiguration("joint_states")),
+                             ("effort_commands", LaunchConfiguration("effort_commands"))],
+                 output="screen", emulate_tty=True)]
+
+
+def generate_launch_description() -> LaunchDescription:
+    default_config = os.path.join(get_package_share_directory("kvark_ros"), "config", "panda.yaml")
+    return LaunchDescription([
+        DeclareLaunchArgument("config", default_value=default_config,
+                              description="estimator parameter file (kvark_estimator: ros__parameters: ...)"),
+        DeclareLaunchArgument("namespace", default_value="", description="namespace of the estimator node"),
+        DeclareLaunchArgument("torque_source", default_value="effort_commands",
+                              description="effort_commands | effort_commands_joint_state | joint_states_effort"),
+        DeclareLaunchArgument("joint_states", default_value="joint_states",
+                              description="joint state topic (sensor_msgs/JointState)"),
+        DeclareLaunchArgument("effort_commands", default_value="effort_commands",
+                              description="commanded joint torque topic (Float64MultiArray or JointState)"),
+        OpaqueFunction(function=_estimator_node),
+    ])

@@ -1,0 +1,1 @@
+"""Stand-in for the ROS 2 package diagnostic_msgs, owned by the kvark_ros test suite; not ROS (see ros_stand_in_core)."""

@@ -230,10 +230,10 @@ def load_config(path: str | os.PathLike, **overrides: Any) -> EstimatorConfig:
     flat.update({key.replace("__", "."): value for key, value in overrides.items()})
     config = config_from_parameters(flat, source)
     root = Path(path).resolve().parent.parent
-    return _with_resolved_paths(config, root)
+    return with_resolved_paths(config, root)
 
 
-def _with_resolved_paths(config: EstimatorConfig, root: Path) -> EstimatorConfig:
+def with_resolved_paths(config: EstimatorConfig, root: Path) -> EstimatorConfig:
     """Relative file paths in the config are relative to the package root holding config/."""
     def resolve(text: str) -> str:
         if text.startswith(("<", EXAMPLE_ROBOT_DATA_PREFIX)) or os.path.isabs(text):

@@ -143,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
     plant = load_plant(default_plant_path(args.robot), config.n_joints)
     train_bags, test_bags = simulate_bags(args.robot, plan, out / "bags", args.seed, log)
     robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
-    segments = [estimator_inputs(read_run(bag, config.joint_names), path=str(bag)) for bag in train_bags]
+    segments = [estimator_inputs(read_run(bag, config.joint_names), config.command_max_age, path=str(bag))
+                for bag in train_bags]
     trained = train_model(robot, config.robot, segments, seed=args.seed, log=log,
                           info={"bags": [bag.name for bag in train_bags]})
     save_model(out / "model", trained)

@@ -148,12 +148,13 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
         make_observer(name, trained, config, plant)
     started = time.perf_counter()
     run = read_run(bag, config.joint_names)
-    inputs = estimator_inputs(run, path=str(bag))
+    inputs = estimator_inputs(run, config.command_max_age, path=str(bag))
     if len(inputs) < 2:
         raise BagError(f"{bag}: fewer than two usable samples; check that joint_states and effort_commands overlap")
     reference = None
     if reference_bag is not None:
-        reference = estimator_inputs(read_run(reference_bag, config.joint_names), path=str(reference_bag))
+        reference = estimator_inputs(read_run(reference_bag, config.joint_names), config.command_max_age,
+                                     path=str(reference_bag))
     robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
     truth = ground_truth(robot, config, run, inputs, reference)
     decode_seconds = time.perf_counter() - started

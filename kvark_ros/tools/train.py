@@ -199,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
     robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
     segments = []
     for bag in args.bags:
-        inputs = estimator_inputs(read_run(bag, config.joint_names), path=str(bag))
+        inputs = estimator_inputs(read_run(bag, config.joint_names), config.command_max_age, path=str(bag))
         print(f"[train] {bag}: {len(inputs)} samples (τ_m from {inputs.torque_source}, "
               f"{inputs.dropped} dropped)", flush=True)
         segments.append(inputs)

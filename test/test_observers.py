@@ -131,3 +131,34 @@ def test_reset_restores_the_initial_state(panda_config):
 def test_unknown_observer_is_refused(panda_config):
     with pytest.raises(ValueError, match="unknown K-VARK variant 'nope'"):
         KVARKFilter("nope", flat_residual(7), tuning(7), panda_config)
+
+
+def test_smoothed_vb_statistic_equals_the_matrix_rts_smoother(panda_config, rng):
+    """The closed form of E[(τ_k − τ_{k−1})² | y_1:k] equals the lag-one RTS smoother in matrix form."""
+    from kvark_ros.core.observers.kvark_momentum import KVARKMomentumFilter
+    from kvark_ros.core.observers.momentum_observers import MomentumNoise, joseph_update
+    tuning_ = FilterTuning(np.full(1, 5.0), np.full(1, 0.05), np.full(1, 0.02), np.full(1, 0.01))
+    observer = KVARKMomentumFilter("kvark", flat_residual(1), tuning_, MomentumNoise.default(1), panda_config)
+    h = 0.002
+    F, H = np.array([[1.0, h], [0.0, 1.0]]), np.array([[1.0, 0.0]])
+    for _ in range(20):
+        A = rng.normal(size=(2, 2))
+        P0 = A @ A.T + 0.1 * np.eye(2)
+        Q = np.diag(rng.uniform(1e-6, 1e-2, 2))
+        R, nu, e_prior = rng.uniform(1e-4, 1e-1), rng.normal(), rng.normal(size=2)
+        P_pred = F @ P0 @ F.T + Q
+        _, tau, a, b, c, s, k2 = joseph_update(np.zeros(1), np.zeros(1), *(np.array([v]) for v in
+                                               (P_pred[0, 0], P_pred[0, 1], P_pred[1, 1])), np.array([nu]),
+                                               np.array([R]))
+        observer.a, observer.b, observer.c, observer._last_s, observer._last_k2 = a, b, c, s, k2
+        got = observer._smoothed_increment((np.array([P0[0, 0]]), np.array([P0[0, 1]]), np.array([P0[1, 1]])),
+                                           np.array([nu]), h)
+        K = P_pred @ H.T / (P_pred[0, 0] + R)
+        P_post = (np.eye(2) - K @ H) @ P_pred
+        G = P0 @ F.T @ np.linalg.inv(P_pred)
+        D = (K * nu).ravel()                                    # x̂_k − x̂⁻
+        w_hat = D[1] - (G @ D)[1]                               # τ̂_k − τ̂_{k−1|k} (τ̂⁻ = τ̂_{k−1})
+        P_prev_smoothed = P0 + G @ (P_post - P_pred) @ G.T
+        cross = P_post @ G.T
+        expected = w_hat ** 2 + P_post[1, 1] + P_prev_smoothed[1, 1] - 2.0 * cross[1, 1]
+        assert np.isclose(got[0], max(expected, 0.0), rtol=1e-8, atol=1e-12)

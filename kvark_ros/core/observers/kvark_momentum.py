@@ -101,7 +101,7 @@ class KVARKMomentumFilter(KFMomentumObserver):
         """Add the random walk's Q (K2) for per-step variance Σ_d and update (K3)-(K5); returns τ̂⁺."""
         q = (sigma_d * (h * h / 3.0), sigma_d * (h / 2.0), sigma_d)     # q_τ h³/3, q_τ h²/2, q_τ h
         self._last_q = q
-        self.p_hat, self.tau, self.a, self.b, self.c, self._last_s, _ = joseph_update(
+        self.p_hat, self.tau, self.a, self.b, self.c, self._last_s, self._last_k2 = joseph_update(
             p_pred, tau_pred, a + q[0], b + q[1], c + q[2], nu, R)
         return self.tau
 
@@ -121,7 +121,7 @@ class KVARKMomentumFilter(KFMomentumObserver):
             tau = self._update(p_pred, tau_pred, a, b, c, nu, R, sigma_d, h)   # eqs. 42-45
             e = tau - tau_pred                                          # eq. 34
             if smoothed:
-                increment = self._smoothed_increment(previous, (a, b, c), e, self.p_hat - p_pred, h)
+                increment = self._smoothed_increment(previous, nu, h)
             else:
                 increment = e * e + self.c                              # eq. 38 as written
             self.vb_dof = dof_pred + 1.0                                # eq. 37
@@ -129,24 +129,18 @@ class KVARKMomentumFilter(KFMomentumObserver):
             sigma_d = self.vb_scale / (self.vb_dof - 2.0)               # eqs. 39-40 (n = 1 per joint)
         self.Sigma_d = sigma_d
 
-    def _smoothed_increment(self, previous, predicted_without_q, e, dp, h) -> np.ndarray:
+    def _smoothed_increment(self, previous: tuple[np.ndarray, ...], nu: np.ndarray, h: float) -> np.ndarray:
         """``E[(τ_k − τ_{k−1})² | y_1:k]`` per joint from a lag-one Rauch-Tung-Striebel smoother.
 
         The statistic eq. 38 stands for. As written, ``e² + P_{k|k}`` counts the posterior
-        uncertainty of τ_k as if τ_{k−1} were known, so Σ_d can never fall below P_{k|k} (and in
-        the momentum form a large Σ_d makes P_{k|k} large: a trap). With G = P_{k−1} Fᵀ (P⁻)⁻¹:
-        ``ŵ = e − (G D)_τ`` (D = x̂_k − x̂⁻), ``P_{k−1|k} = P_{k−1} + G (P_k − P⁻) Gᵀ`` and
-        ``E[w²] = ŵ² + P_k,ττ + P_{k−1|k},ττ − 2 (P_k Gᵀ)_ττ``; 2×2 blocks in closed form.
+        uncertainty of τ_k as if τ_{k−1} were known, so Σ_d can never fall below P_{k|k}. With the
+        smoother gain G = P_{k−1} Fᵀ (P⁻)⁻¹ and the optimal gain K = P⁻Hᵀ/s, the smoothed increment
+        ŵ = e − (G K ν)_τ, P_{k−1|k} = P_{k−1} − G K s Kᵀ Gᵀ and P_{k,k−1|k} = (I − KH) F P_{k−1}
+        reduce, with r = (P_{k−1} Fᵀ)_τp = b_{k−1} + h c_{k−1}, to
+        ``(k₂ν − rν/s)² + c_k − c_{k−1} − r²/s + 2 k₂ r`` (checked against the matrix form).
         """
-        a0, b0, c0 = previous
-        q0, q1, q2 = self._last_q
-        am, bm, cm = predicted_without_q[0] + q0, predicted_without_q[1] + q1, predicted_without_q[2] + q2  # P⁻
-        det = am * cm - bm * bm
-        r1, r2 = b0 + h * c0, c0                                        # τ row of P_{k−1} Fᵀ
-        g1 = (r1 * cm - r2 * bm) / det                                  # τ row of G = P_{k−1} Fᵀ (P⁻)⁻¹
-        g2 = (r2 * am - r1 * bm) / det
-        w_hat = e - (g1 * dp + g2 * e)
-        da, db, dc = self.a - am, self.b - bm, self.c - cm              # P_k − P⁻
-        smoothed_prev = c0 + g1 * g1 * da + 2.0 * g1 * g2 * db + g2 * g2 * dc
-        cross = self.b * g1 + self.c * g2
-        return np.maximum(w_hat * w_hat + self.c + smoothed_prev - 2.0 * cross, 0.0)
+        _, b0, c0 = previous
+        r = b0 + h * c0
+        s, k2 = self._last_s, self._last_k2
+        w_hat = (k2 - r / s) * nu
+        return np.maximum(w_hat * w_hat + self.c - c0 - r * r / s + 2.0 * k2 * r, 0.0)

@@ -60,6 +60,7 @@ class KVARKMomentumFilter(KFMomentumObserver):
     def reset(self) -> None:
         super().reset()
         self.R_adaptive = self.R.copy()                                 # R_k, (N·m·s)²
+        self.R_min = R_FLOOR * self.R
         self.nis_mean = np.ones(self.n)                                 # A4: running mean NIS per joint
         self.Sigma_d: np.ndarray | None = None                          # VB: Σ_d,k−1 per joint, N²·m²
         self.vb_dof = np.zeros(self.n)                                  # VB: λ_{k−1}
@@ -90,11 +91,12 @@ class KVARKMomentumFilter(KFMomentumObserver):
         if variant.ewma:
             # eq. 31 with eq. 16's correction: E[ν²] = H P⁻ Hᵀ + R; bounded by the training R (Remark 2)
             a_pred = a_f + self._last_q[0]
-            self.R_adaptive = np.clip(self.R_adaptive + config.ewma_rate * (nu * nu - a_pred - self.R_adaptive),
-                                      R_FLOOR * self.R, self.R)
+            updated = self.R_adaptive + config.ewma_rate * (nu * nu - a_pred - self.R_adaptive)
+            self.R_adaptive = np.minimum(np.maximum(updated, self.R_min), self.R)   # np.clip costs 4× more
         if variant.nis:
             nis = nu * nu / self._last_s
-            self.nis_mean = np.clip(self.nis_mean + config.nis_rate * (nis - self.nis_mean), *NIS_SCALE_BOUNDS)
+            updated = self.nis_mean + config.nis_rate * (nis - self.nis_mean)
+            self.nis_mean = np.minimum(np.maximum(updated, NIS_SCALE_BOUNDS[0]), NIS_SCALE_BOUNDS[1])
         return self.tau, np.diag(self.c)
 
     def _update(self, p_pred, tau_pred, a, b, c, nu, R, sigma_d, h) -> np.ndarray:

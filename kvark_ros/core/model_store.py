@@ -88,8 +88,10 @@ def _swap_in(staging: Path, target: Path) -> None:
     shutil.rmtree(backup, ignore_errors=True)
 
 
-def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None = None) -> TrainedModel:
-    """Read a model directory; ``joint_names`` (the config's) must match the model's exactly."""
+def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None = None,
+               urdf_sha256: str | None = None) -> TrainedModel:
+    """Read a model directory; ``joint_names`` (the config's) must match the model's exactly, and
+    ``urdf_sha256`` (of the URDF the estimator will use) the one the model was trained with, if recorded."""
     path = Path(directory) / MODEL_FILE
     try:
         document = yaml.safe_load(path.read_text())
@@ -113,6 +115,10 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
     if joint_names is not None and tuple(joint_names) != names:
         raise ResidualModelError(f"{path}: model joints {list(names)} differ from the configured "
                                  f"{list(joint_names)}; train a model for these joints")
+    trained_urdf = (document.get("info") or {}).get("urdf_sha256")
+    if urdf_sha256 is not None and trained_urdf is not None and trained_urdf != urdf_sha256:
+        raise ResidualModelError(f"{path}: trained for another URDF (sha256 {trained_urdf[:12]}…, the config's is "
+                                 f"{urdf_sha256[:12]}…); retrain with `kvark train` for this robot model")
     residual = KMPResidualModel.load(directory)
     classes = _baseline_classes() if baseline_tunings else {}
     unknown = sorted(set(baseline_tunings) - set(classes))

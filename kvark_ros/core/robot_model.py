@@ -9,6 +9,7 @@ Sign convention (DESIGN §1): ``M q̈ + C q̇ + g + τ_f = τ_m + τ_ext`` with 
 """
 from __future__ import annotations
 
+import hashlib
 import os
 from dataclasses import dataclass
 from importlib import metadata
@@ -47,6 +48,11 @@ def resolve_urdf(spec: str) -> str:
         raise RobotModelError(f"{text}: URDF file not found; set robot_model.urdf to an existing file, "
                               f"or to {EXAMPLE_ROBOT_DATA_PREFIX}panda / {EXAMPLE_ROBOT_DATA_PREFIX}ur5")
     return path.read_text()
+
+
+def urdf_sha256(spec: str) -> str:
+    """sha256 of the URDF text ``spec`` resolves to: recorded by training, checked before estimation."""
+    return hashlib.sha256(resolve_urdf(spec).encode()).hexdigest()
 
 
 def _example_robot_data_path(robot: str) -> str:

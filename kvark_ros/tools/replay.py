@@ -23,7 +23,7 @@ from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, load_config
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.model_store import TrainedModel, load_model
 from kvark_ros.core.observers import make_observer
-from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.robot_model import RobotModel, urdf_sha256
 from kvark_ros.io.alignment import EstimatorInputs, estimator_inputs
 from kvark_ros.io.bag import BagError, BagWriter, RecordedRun, read_run, write_run_messages
 from kvark_ros.tools.metrics import observer_metrics
@@ -212,7 +212,7 @@ def parse_observers(text: str, plant_given: bool) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    trained = load_model(args.model or config.model_dir, config.joint_names)
+    trained = load_model(args.model or config.model_dir, config.joint_names, urdf_sha256(config.urdf))
     plant = None
     if args.plant:
         from kvark_ros.sim.plant import load_plant

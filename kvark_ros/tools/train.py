@@ -24,7 +24,7 @@ from kvark_ros.core.model_store import TrainedModel, save_model
 from kvark_ros.core.observers.base import FilterTuning
 from kvark_ros.core.observers.momentum_observers import MomentumNoise
 from kvark_ros.core.residual_model import KMPHyperparameters, KMPResidualModel
-from kvark_ros.core.robot_model import RobotModel, resolve_urdf
+from kvark_ros.core.robot_model import RobotModel, urdf_sha256
 from kvark_ros.core.tuning import match_covariances, virtual_measurements
 from kvark_ros.io.alignment import EstimatorInputs, estimator_inputs
 from kvark_ros.io.bag import read_run
@@ -204,7 +204,7 @@ def run(args: argparse.Namespace) -> int:
               f"{inputs.dropped} dropped)", flush=True)
         segments.append(inputs)
     info = {"robot": config.robot, "joint_names": list(config.joint_names),
-            "urdf_sha256": hashlib.sha256(resolve_urdf(config.urdf).encode()).hexdigest(),
+            "urdf_sha256": urdf_sha256(config.urdf),
             "bags": [{"name": Path(bag).name, "sha256": bag_hash(Path(bag))} for bag in args.bags]}
     trained = train_model(robot, config.robot, segments, baselines=not args.no_baselines, seed=args.seed,
                           info=info, log=lambda line: print(line, flush=True))

@@ -81,10 +81,20 @@ def test_observers_converge_to_a_step_external_torque(panda, panda_config, panda
     assert np.mean(np.abs(estimates[rise][-1] - STEP)) < 0.3 * np.mean(np.abs(STEP))
 
 
-@pytest.mark.parametrize("vb_variant, steps", [("paper", 100_000), ("huang", 20_000)])
-def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_config, rng, vb_variant, steps):
-    config = replace(panda_config, measurement="difference", vb_variant=vb_variant)
-    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), config)
+@pytest.mark.parametrize("measurement, vb_variant, steps", [("difference", "paper", 100_000),
+                                                           ("difference", "huang", 20_000),
+                                                           ("momentum", "smoothed", 100_000),
+                                                           ("momentum", "paper", 20_000)])
+def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_config, rng, measurement, vb_variant,
+                                                                     steps):
+    from kvark_ros.core.observers.kvark_momentum import KVARKMomentumFilter
+    from kvark_ros.core.observers.momentum_observers import MomentumNoise
+    config = replace(panda_config, measurement=measurement, vb_variant=vb_variant)
+    if measurement == "difference":
+        observer = KVARKFilter("kvark", flat_residual(7), tuning(7), config)
+    else:
+        tuned = replace(tuning(7), residual_variance=np.full(7, 0.01))
+        observer = KVARKMomentumFilter("kvark", flat_residual(7), tuned, MomentumNoise.default(7), config)
     p_prev, u = np.zeros(7), np.zeros(7)
     for k in range(steps):
         burst = 50.0 if (k // 5000) % 2 else 0.0          # contact on and off
@@ -95,6 +105,8 @@ def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_confi
             assert np.array_equal(P, P.T)
             assert np.linalg.eigvalsh(P).min() > 0.0
             assert np.isfinite(x).all()
+            if measurement == "momentum":          # every joint's 2×2 block [[a, b], [b, c]] too
+                assert np.all(observer.a > 0) and np.all(observer.a * observer.c - observer.b ** 2 > 0)
 
 
 def test_vb_process_noise_grows_when_the_external_torque_jumps(panda_config):

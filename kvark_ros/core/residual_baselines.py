@@ -5,8 +5,8 @@ q̇_j (rad/s) to the residual torque τ_r,j = τ_m,j − τ_EL,j (N·m) with a p
 (N²·m²), and has the same interface: ``n_joints``, ``predict(qd (n,)) -> (mean (n,), var (n,))``
 (hot path: vectorised across joints, all factors precomputed, no sklearn call),
 ``predict_batch(qd (T, n))``, the ``fit`` classmethod, and ``save(directory)`` /
-``load(directory)`` writing their own file pair in the model directory, atomically, without
-pickle (arrays in .npz read with allow_pickle=False, a small YAML header beside them).
+``load(directory)`` writing their own file pair in the model directory, atomically, with no
+object serialisation (arrays in .npz read with allow_pickle=False, a small YAML header beside them).
 
 =====================  ==========  ============================================================
 class                  files       model
@@ -59,6 +59,7 @@ from kvark_ros.core.residual_model import (
     _check_training_data,
     _frozen_float_array,
     freeze_positive_vectors,
+    read_model_header,
     _read_arrays,
     _write_atomically,
     fit_gmr_reference,
@@ -308,33 +309,6 @@ def _save_pair(directory: str | os.PathLike, stem: str, arrays: Mapping[str, np.
     _write_atomically(directory / f"{stem}.yaml", lambda f: f.write(text.encode()))
 
 
-def _read_baseline_header(path: Path, model: str, int_keys: tuple[str, ...]) -> dict[str, Any]:
-    """Read and check a baseline's YAML header; ResidualModelError naming `path` on any problem."""
-    try:
-        header = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ResidualModelError(f"{path}: cannot read ({exc})") from exc
-    except yaml.YAMLError as exc:
-        raise ResidualModelError(f"{path}: not valid YAML ({exc})") from exc
-    if not isinstance(header, dict):
-        raise ResidualModelError(f"{path}: expected a mapping at top level")
-    version = header.get("format_version")
-    if version != FORMAT_VERSION:
-        raise ResidualModelError(
-            f"{path}: unknown format_version {version!r} (this code reads {FORMAT_VERSION})")
-    if header.get("model") != model:
-        raise ResidualModelError(f"{path}: model is {header.get('model')!r}, expected {model!r}")
-    for key in ("n_joints",) + int_keys:
-        value = header.get(key)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ResidualModelError(f"{path}: {key} must be a positive integer, got {value!r}")
-    metadata = header.get("metadata") or {}
-    if not isinstance(metadata, dict):
-        raise ResidualModelError(f"{path}: 'metadata' must be a mapping")
-    header["metadata"] = metadata
-    return header
-
-
 def _check_listed(yaml_path: Path, npz_path: Path, listed: Any, arrays: Mapping[str, np.ndarray],
                   keys: tuple[str, ...]) -> None:
     """The values listed in the YAML header must equal the arrays in the npz (same save)."""
@@ -515,7 +489,7 @@ class GMRGPResidualModel(_KernelPredictor):
         ResidualModelError naming the file."""
         directory = Path(directory)
         yaml_path, npz_path = directory / cls.YAML_NAME, directory / cls.NPZ_NAME
-        header = _read_baseline_header(yaml_path, cls.name, ("n_support", "samples_per_support"))
+        header = read_model_header(yaml_path, ("n_support", "samples_per_support"), cls.name)
         n, n_sup = header["n_joints"], header["n_support"]
         shapes: dict[str, tuple[int, ...]] = {"support": (n, n_sup), "targets": (n, n_sup)}
         shapes.update({key: (n,) for key in _GP_HYPER_KEYS})
@@ -722,7 +696,7 @@ class SparseGPResidualModel(_KernelPredictor):
         ResidualModelError naming the file."""
         directory = Path(directory)
         yaml_path, npz_path = directory / cls.YAML_NAME, directory / cls.NPZ_NAME
-        header = _read_baseline_header(yaml_path, cls.name, ("n_inducing",))
+        header = read_model_header(yaml_path, ("n_inducing",), cls.name)
         if header.get("approximation") not in ("fitc", "dtc"):
             raise ResidualModelError(f"{yaml_path}: approximation must be 'fitc' or 'dtc', got "
                                      f"{header.get('approximation')!r}")
@@ -976,7 +950,7 @@ class MLPResidualModel:
         ResidualModelError naming the file."""
         directory = Path(directory)
         yaml_path, npz_path = directory / cls.YAML_NAME, directory / cls.NPZ_NAME
-        header = _read_baseline_header(yaml_path, cls.name, ())
+        header = read_model_header(yaml_path, (), cls.name)
         n = header["n_joints"]
         if header.get("activation") not in _ACTIVATIONS:
             raise ResidualModelError(f"{yaml_path}: activation must be one of "

@@ -412,7 +412,9 @@ class KMPResidualModel:
         """
         directory = Path(directory)
         yaml_path, npz_path = directory / YAML_NAME, directory / NPZ_NAME
-        header = _read_header(yaml_path)
+        header = read_model_header(yaml_path, ("n_support",))
+        if not isinstance(header.get("hyperparameters"), dict):
+            raise ResidualModelError(f"{yaml_path}: missing 'hyperparameters' mapping")
         shapes = {key: (header["n_joints"], header["n_support"]) for key in _REFERENCE_KEYS}
         shapes.update({key: (header["n_joints"],) for key in _HYPER_KEYS})
         arrays = _read_arrays(npz_path, shapes)
@@ -450,8 +452,10 @@ def _write_atomically(path: Path, write: Callable[[Any], Any]) -> None:
         raise
 
 
-def _read_header(path: Path) -> dict[str, Any]:
-    """Read and check kmp.yaml; raise ResidualModelError naming `path` on any problem."""
+def read_model_header(path: Path, int_keys: tuple[str, ...], model: str | None = None) -> dict[str, Any]:
+    """Read and check a model's YAML header (format version, ``model`` name if given, positive
+    integers ``n_joints`` and ``int_keys``, optional ``metadata`` mapping); ResidualModelError naming
+    ``path`` on any problem. Shared by KMP and the baselines' models."""
     try:
         header = yaml.safe_load(path.read_text())
     except OSError as exc:
@@ -464,12 +468,12 @@ def _read_header(path: Path) -> dict[str, Any]:
     if version != FORMAT_VERSION:
         raise ResidualModelError(
             f"{path}: unknown format_version {version!r} (this code reads {FORMAT_VERSION})")
-    for key in ("n_joints", "n_support"):
+    if model is not None and header.get("model") != model:
+        raise ResidualModelError(f"{path}: model is {header.get('model')!r}, expected {model!r}")
+    for key in ("n_joints",) + int_keys:
         value = header.get(key)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ResidualModelError(f"{path}: {key} must be a positive integer, got {value!r}")
-    if not isinstance(header.get("hyperparameters"), dict):
-        raise ResidualModelError(f"{path}: missing 'hyperparameters' mapping")
     metadata = header.get("metadata") or {}
     if not isinstance(metadata, dict):
         raise ResidualModelError(f"{path}: 'metadata' must be a mapping")
@@ -478,7 +482,7 @@ def _read_header(path: Path) -> dict[str, Any]:
 
 
 def _read_arrays(path: Path, shapes: Mapping[str, tuple[int, ...]]) -> dict[str, np.ndarray]:
-    """Read the arrays named in `shapes` from kmp.npz without pickle; check shape and values."""
+    """Read the arrays named in `shapes` from an npz (object arrays refused); check shape and values."""
     arrays: dict[str, np.ndarray] = {}
     try:
         with np.load(path, allow_pickle=False) as npz:

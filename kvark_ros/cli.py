@@ -10,9 +10,11 @@ from kvark_ros.core.observers import ObserverError
 from kvark_ros.core.residual_model import ResidualModelError
 from kvark_ros.core.robot_model import RobotModelError
 from kvark_ros.io.bag import BagError
+from kvark_ros.sim.plant import PlantError
 from kvark_ros.tools import bench, benchmark, replay, train
 
-USER_ERRORS = (ConfigError, ResidualModelError, RobotModelError, BagError, ObserverError, FileNotFoundError)
+USER_ERRORS = (ConfigError, ResidualModelError, RobotModelError, BagError, ObserverError, PlantError,
+               FileNotFoundError)
 
 
 def build_parser() -> argparse.ArgumentParser:

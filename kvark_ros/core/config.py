@@ -216,6 +216,9 @@ def load_config(path: str | os.PathLike, **overrides: Any) -> EstimatorConfig:
         document = yaml.safe_load(Path(path).read_text())
     except FileNotFoundError as exc:
         raise ConfigError(f"{source}: file not found; pass an existing config such as config/panda.yaml") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{source}: cannot read the config ({getattr(exc, 'strerror', None) or 'not a text file'}); "
+                          "pass a YAML file such as config/panda.yaml") from exc
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark is not None else ""

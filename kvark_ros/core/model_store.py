@@ -93,11 +93,15 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
     """Read a model directory; ``joint_names`` (the config's) must match the model's exactly, and
     ``urdf_sha256`` (of the URDF the estimator will use) the one the model was trained with, if recorded."""
     path = Path(directory) / MODEL_FILE
+    if Path(directory).exists() and not Path(directory).is_dir():
+        raise ResidualModelError(f"{directory}: not a model directory; pass the directory `kvark train` wrote")
     try:
         document = yaml.safe_load(path.read_text())
     except FileNotFoundError as exc:
         raise ResidualModelError(f"{path}: model file not found; train one with `kvark train` "
                                  "or set residual_model.model_dir") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ResidualModelError(f"{path}: cannot read the model file (not text); retrain the model") from exc
     except yaml.YAMLError as exc:
         raise ResidualModelError(f"{path}: not valid YAML; retrain the model") from exc
     if not isinstance(document, dict) or document.get("format") != MODEL_FORMAT:

@@ -458,10 +458,12 @@ def read_model_header(path: Path, int_keys: tuple[str, ...], model: str | None =
     ``path`` on any problem. Shared by KMP and the baselines' models."""
     try:
         header = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise ResidualModelError(f"{path}: cannot read ({exc})") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ResidualModelError(f"{path}: cannot read ({type(exc).__name__}); retrain the model") from exc
     except yaml.YAMLError as exc:
-        raise ResidualModelError(f"{path}: not valid YAML ({exc})") from exc
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise ResidualModelError(f"{path}: not valid YAML{where}; retrain the model") from exc
     if not isinstance(header, dict):
         raise ResidualModelError(f"{path}: expected a mapping at top level")
     version = header.get("format_version")
@@ -502,6 +504,7 @@ def _read_arrays(path: Path, shapes: Mapping[str, tuple[int, ...]]) -> dict[str,
     except ResidualModelError:
         raise
     except (OSError, EOFError, ValueError, zipfile.BadZipFile) as exc:
-        # ValueError includes numpy's refusal of pickled (object) data.
-        raise ResidualModelError(f"{path}: cannot read ({type(exc).__name__}: {exc})") from exc
+        # ValueError includes numpy's refusal of object arrays; its text suggests an unsafe load.
+        raise ResidualModelError(f"{path}: corrupt or not a kvark model file ({type(exc).__name__}); "
+                                 "retrain the model with `kvark train`") from exc
     return arrays

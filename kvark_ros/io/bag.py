@@ -770,7 +770,7 @@ def _check_type(path: Path, topic: str, found: set[str], allowed: set[str]) -> N
             path,
             f"topic {topic} has type {'|'.join(sorted(found))}, "
             f"expected {' or '.join(sorted(allowed))}",
-            "point TopicNames at the right topic or re-record it",
+            "record the joint states as sensor_msgs/msg/JointState on that topic (remap when recording)",
         )
 
 
@@ -815,7 +815,7 @@ def read_run(
             raise _error(
                 given,
                 f"topic {topics.joint_states} is absent ({_describe_topics(types)})",
-                "pass TopicNames(joint_states=...) naming the joint-state topic",
+                "record the joint states on /joint_states (remap the topic when recording)",
             )
         _check_type(given, topics.joint_states, types[topics.joint_states], {JOINT_STATE})
         optional = {

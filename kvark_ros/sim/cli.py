@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from kvark_ros.io.bag import BagError, write_run
+from kvark_ros.io.bag import write_run
 from kvark_ros.sim.robots import ROBOTS
 from kvark_ros.sim.scenarios import SCENARIOS, run_scenario
 
@@ -59,17 +59,16 @@ def add_simulate_parser(subparsers: Any) -> argparse.ArgumentParser:
 def run_simulate(args: argparse.Namespace) -> int:
     """Run ``kvark simulate`` for parsed arguments; prints progress and the real-time factor."""
     if Path(args.out).exists() and not args.overwrite:     # refuse before minutes of simulation
-        print(f"kvark simulate: {args.out} exists already; pass --overwrite or choose another --out",
+        print(f"kvark: error: {args.out} exists already; pass --overwrite or choose another --out",
               file=sys.stderr)
-        return 2
+        return 1
     try:
         output = run_scenario(args.robot, args.scenario, args.seed, args.duration, args.plant,
                               progress=True)
         write_run(args.out, output.run, storage=args.storage, overwrite=args.overwrite)
-    except ValueError as exc:          # bad plant file, duration, existing output (BagError)
-        kind = "bag" if isinstance(exc, BagError) else "simulate"
-        print(f"kvark simulate: {kind} error: {exc}", file=sys.stderr)
-        return 2
+    except ValueError as exc:          # bad plant file (PlantError), duration, existing output (BagError)
+        print(f"kvark: error: {exc}", file=sys.stderr)
+        return 1
     samples = len(output.run.joint_states.stamp)
     print(f"wrote {args.out}: {args.robot} {args.scenario}, {samples} samples "
           f"({args.duration:g} s simulated in {output.wall_time:.2f} s), "

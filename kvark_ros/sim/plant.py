@@ -100,10 +100,14 @@ class PlantSpec:
         return self.friction_model in ("coulomb_viscous", "stribeck")
 
 
+class PlantError(ValueError):
+    """A plant file or value is invalid; the message names the file and the key."""
+
+
 def load_plant(source: str | os.PathLike[str] | Mapping[str, Any] | None, n_joints: int) -> PlantSpec:
     """Parse a plant file (path or already-loaded mapping; None = exactly the URDF).
 
-    Raises ValueError naming the offending key (and the file) on any bad value.
+    Raises PlantError naming the offending key (and the file) on any bad value.
     """
     where = "plant"
     if source is None:
@@ -114,12 +118,15 @@ def load_plant(source: str | os.PathLike[str] | Mapping[str, Any] | None, n_join
         where = os.fspath(source)
         try:
             data = yaml.safe_load(Path(where).read_text()) or {}
-        except OSError as exc:
-            raise ValueError(f"{where}: cannot read plant file ({exc.strerror})") from exc
+        except (OSError, UnicodeDecodeError) as exc:
+            raise PlantError(f"{where}: cannot read plant file ({getattr(exc, 'strerror', None) or 'not text'}); "
+                             f"pass an existing plant file such as {default_plant_path('panda')}") from exc
         except yaml.YAMLError as exc:
-            raise ValueError(f"{where}: not valid YAML ({exc})") from exc
+            mark = getattr(exc, "problem_mark", None)
+            line = f" at line {mark.line + 1}" if mark is not None else ""
+            raise PlantError(f"{where}: not valid YAML{line}; fix the syntax") from exc
     if not isinstance(data, Mapping):
-        raise ValueError(f"{where}: a plant file is a mapping of keys {list(_TOP_KEYS)}")
+        raise PlantError(f"{where}: a plant file is a mapping of keys {list(_TOP_KEYS)}")
     return _Parser(where, n_joints).parse(data)
 
 
@@ -135,9 +142,9 @@ class _Parser:
         self.where = where
         self.n = n
 
-    def fail(self, key: str, problem: str) -> ValueError:
+    def fail(self, key: str, problem: str) -> PlantError:
         """The error for a bad value at ``key``."""
-        return ValueError(f"{self.where}: {key} {problem}")
+        return PlantError(f"{self.where}: {key} {problem}")
 
     def mapping(self, value: Any, key: str, allowed: tuple[str, ...]) -> Mapping[str, Any]:
         """``value`` as a mapping whose keys are all in ``allowed``."""

@@ -5,7 +5,7 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.kvark-installed
 
-.PHONY: demo test bench bags model benchmark clean
+.PHONY: demo test bench bags model benchmark reliability clean
 
 KVARK   := $(BIN)/kvark
 CONFIG  := config/panda.yaml
@@ -40,6 +40,11 @@ bags: $(STAMP)
 ## model: retrain the committed model from the committed bags
 model: $(STAMP)
 	$(KVARK) train --config $(CONFIG) --bags bags/panda_excitation_1 bags/panda_excitation_2 --out models/panda
+
+## reliability: the reliability figures: a 10^6-step soak with faults and the property tests
+reliability: $(STAMP)
+	$(KVARK) soak --steps 1000000
+	$(BIN)/python -m pytest test/test_reliability.py -q --hypothesis-show-statistics
 
 ## benchmark: the full simulated comparison of every observer (see README, Results)
 benchmark: $(STAMP)

@@ -11,7 +11,7 @@ from kvark_ros.core.residual_model import ResidualModelError
 from kvark_ros.core.robot_model import RobotModelError
 from kvark_ros.io.bag import BagError
 from kvark_ros.sim.plant import PlantError
-from kvark_ros.tools import bench, benchmark, replay, train
+from kvark_ros.tools import bench, benchmark, replay, soak, train
 
 USER_ERRORS = (ConfigError, ResidualModelError, RobotModelError, BagError, ObserverError, PlantError,
                FileNotFoundError)
@@ -33,6 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_parser(subparsers)
     benchmark.add_parser(subparsers)
     bench.add_parser(subparsers)
+    soak.add_parser(subparsers)
     return parser
 
 

@@ -14,7 +14,7 @@ import numpy as np
 from kvark_ros.core.config import EstimatorConfig
 from kvark_ros.core.model_store import TrainedModel, load_model
 from kvark_ros.core.observers import Observer, make_observer
-from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.robot_model import RobotModel, urdf_sha256
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,7 @@ class Status:
     OK = "ok"
     WARMUP = "warm-up: first sample after start or reset"
     BAD_SHAPE = "rejected: q, qd or tau_m has the wrong length"
-    NON_FINITE = "rejected: NaN or Inf in q, qd or tau_m"
+    NON_FINITE = "rejected: NaN, Inf or an overflowing value (|x| > 1e150) in q, qd or tau_m"
     STAMP_NOT_INCREASING = "rejected: stamp not after the previous sample (out of order or duplicate)"
     GAP_RESET = "reset: gap between samples longer than input.max_gap"
     DIVERGED_RESET = "reset: filter produced a non-finite estimate"
@@ -72,7 +72,8 @@ class Estimator:
         """
         robot = RobotModel(urdf or config.urdf, config.joint_names, config.ee_frame,
                            config.flange_frame, config.payload)
-        trained = trained or load_model(config.model_dir, config.joint_names)
+        trained = trained or load_model(config.model_dir, config.joint_names,
+                                        urdf_sha256(config.urdf) if urdf is None else None)
         return cls(config, robot, make_observer(observer or config.observer, trained, config, plant))
 
     def reset(self) -> None:

@@ -81,6 +81,7 @@ from kvark_ros.core.config import (MEASUREMENTS, NODE_NAME, OBSERVER_NAMES, VB_V
                                    parameter_defaults)
 from kvark_ros.core.estimator import Estimator, Status
 from kvark_ros.core.model_store import TrainedModel, load_model
+from kvark_ros.core.robot_model import urdf_sha256
 from kvark_ros.ros.contact import ContactDetector, contact_covariance
 
 T = Parameter.Type
@@ -399,7 +400,10 @@ class EstimatorNode(Node):
 
     def _build(self, urdf_xml: str | None) -> tuple[Estimator, TrainedModel]:
         config = self._config
-        trained = load_model(config.model_dir, config.joint_names)
+        # The URDF file's sha256 must be the one the model was trained with; a robot_description
+        # string differs in formatting from the file, so only its joint names are checked.
+        trained = load_model(config.model_dir, config.joint_names,
+                             urdf_sha256(config.urdf) if urdf_xml is None else None)
         return Estimator.from_config(config, trained, urdf=urdf_xml), trained
 
     def _load(self, urdf_xml: str | None) -> str | None:

@@ -1,0 +1,247 @@
+"""Library of named physical effects, each a linear-in-parameters regressor of the model gap.
+
+The gap is ``τ_m − τ_EL`` (paper eq. 27) on a contact-free motion: what the commanded torque
+spends beyond the nominal rigid-body model. Every effect adds ``Φ(q, q̇, q̈, τ_m) θ`` to it, with
+the sign chosen so that θ is the physical parameter (sign conventions of ``kvark_ros.sim.plant``):
+
+* ``coulomb_friction``  ``F_c tanh(q̇/ε)``, F_c ≥ 0 N·m;
+* ``viscous_friction``  ``F_v q̇``, F_v ≥ 0 N·m·s/rad;
+* ``stribeck_friction`` ``(F_s − F_c) exp(−(q̇/v_s)²) tanh(q̇/ε)``, ≥ 0, v_s from a small grid;
+* ``armature``          ``I_a q̈``, I_a ≥ 0 kg·m² (rotor inertia seen at the joint);
+* ``payload``           ``Y_flange(q, q̇, q̈) π``: the 10 inertial parameters of a rigid body in the
+  flange frame (pinocchio's joint-torque regressor of the flange's link); mass > 0;
+* ``drive_gain``        the drive applies ``g τ_m``: gap ``(1 − g) τ_m``; reported as g;
+* ``torque_offset``     the drive applies ``τ_m + o``: gap ``−o``;
+* ``position_ripple``   the drive applies ``a sin(k q) + b cos(k q)``: gap ``−(a sin + b cos)``;
+* ``joint_offset``      the encoder reads ``q + δ``: gap ``−∂g/∂q_j δ_j`` (gravity sensitivity).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import pinocchio as pin
+
+from kvark_ros.core.robot_model import RobotModel
+
+EFFECT_NAMES = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "payload",
+                "drive_gain", "torque_offset", "position_ripple", "joint_offset")
+PER_JOINT = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "drive_gain",
+             "torque_offset", "position_ripple")
+TANH_EPSILON = 0.02                           # rad/s, width of the smoothed sign(q̇)
+STRIBECK_VELOCITIES = (0.03, 0.1, 0.3)        # rad/s, grid of v_s
+RIPPLE_CYCLES = (2, 3, 4, 6, 8, 12, 16, 24, 32, 50, 64, 100)   # cycles per revolution, grid of k
+PAYLOAD_PARAMETERS = ("mass", "mx", "my", "mz", "ixx", "ixy", "iyy", "ixz", "iyz", "izz")
+MIN_MASS = 1e-3                               # kg, lower bound of a payload mass
+MAX_GAIN_ERROR = 0.5                          # |g − 1| bound of drive_gain
+
+
+@dataclass(frozen=True, eq=False)
+class Signals:
+    """Samples of one or more motions: q, q̇, q̈, smoothed τ_m, gap (T, n); payload regressor
+    (T, n, 10) in the flange frame; gravity sensitivity ∂g/∂q (T, n, n)."""
+
+    q: np.ndarray
+    qd: np.ndarray
+    qdd: np.ndarray
+    tau_m: np.ndarray
+    gap: np.ndarray
+    payload_regressor: np.ndarray
+    gravity_jacobian: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.q)
+
+    def take(self, index: np.ndarray) -> "Signals":
+        return Signals(*(getattr(self, f)[index] for f in ("q", "qd", "qdd", "tau_m", "gap",
+                                                            "payload_regressor", "gravity_jacobian")))
+
+
+def flange_parameter_map(robot: RobotModel) -> tuple[int, np.ndarray]:
+    """(joint id of the flange's link, A (10, 10)) with ``π_joint = A π_flange``.
+
+    The map is linear (a change of reference frame of a spatial inertia), so it is fixed exactly by
+    ten linearly independent physical inertias.
+    """
+    frame = robot.model.frames[robot.flange_frame_id]
+    rng = np.random.default_rng(0)
+    flange, joint = [], []
+    for _ in range(10):
+        a = rng.standard_normal((3, 3))
+        inertia = pin.Inertia(1.0 + rng.random(), rng.standard_normal(3) * 0.1, a @ a.T + 0.1 * np.eye(3))
+        flange.append(inertia.toDynamicParameters())
+        joint.append(frame.placement.act(inertia).toDynamicParameters())
+    flange_m, joint_m = np.array(flange).T, np.array(joint).T
+    return frame.parentJoint, joint_m @ np.linalg.inv(flange_m)
+
+
+def signals(robot: RobotModel, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, tau_m: np.ndarray) -> Signals:
+    """Gap and the regressors that need the model, for samples (T, n)."""
+    model, data = robot.model, robot.data
+    jid, a_map = flange_parameter_map(robot)
+    t, n = q.shape
+    gap = np.empty((t, n))
+    payload = np.empty((t, n, 10))
+    gravity = np.empty((t, n, n))
+    for k in range(t):
+        gap[k] = tau_m[k] - robot.inverse_dynamics(q[k], qd[k], qdd[k])
+        y = pin.computeJointTorqueRegressor(model, data, q[k], qd[k], qdd[k])
+        payload[k] = y[:, 10 * (jid - 1):10 * jid] @ a_map
+        gravity[k] = pin.computeGeneralizedGravityDerivatives(model, data, q[k])
+    return Signals(q, qd, qdd, tau_m, gap, payload, gravity)
+
+
+@dataclass(frozen=True)
+class Term:
+    """One effect on a set of joints: its regressor block and parameter layout.
+
+    ``variant`` holds the fixed (non-linear) settings, e.g. ``{"stribeck_velocity": 0.1}``.
+    """
+
+    name: str
+    joints: tuple[int, ...]
+    variant: Mapping[str, float] = field(default_factory=dict)
+
+    @property
+    def per_joint_parameters(self) -> tuple[str, ...]:
+        """Names of the parameters each joint carries (payload: of the whole body)."""
+        return {"coulomb_friction": ("coulomb",), "viscous_friction": ("viscous",),
+                "stribeck_friction": ("static_minus_coulomb",), "armature": ("armature",),
+                "drive_gain": ("gain_error_neg",), "torque_offset": ("offset",),
+                "position_ripple": ("sin_amplitude", "cos_amplitude"), "joint_offset": ("offset",),
+                "payload": PAYLOAD_PARAMETERS}[self.name]
+
+    @property
+    def size(self) -> int:
+        k = len(self.per_joint_parameters)
+        return k if self.name == "payload" else k * len(self.joints)
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        lo, hi = np.full(self.size, -np.inf), np.full(self.size, np.inf)
+        if self.name in ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature"):
+            lo[:] = 0.0
+        elif self.name == "payload":
+            lo[0] = MIN_MASS
+        elif self.name == "drive_gain":   # θ = 1 − g; a drive delivering < 50 % or > 150 % is not a gain error
+            lo[:], hi[:] = -MAX_GAIN_ERROR, MAX_GAIN_ERROR
+        return lo, hi
+
+    def design(self, s: Signals) -> np.ndarray:
+        """Regressor block (T, n, size): gap rows × parameters."""
+        t, n = s.q.shape
+        if self.name == "payload":
+            return s.payload_regressor
+        out = np.zeros((t, n, self.size))
+        eps = self.variant.get("epsilon", TANH_EPSILON)
+        for i, j in enumerate(self.joints):
+            if self.name == "joint_offset":
+                out[:, :, i] = -s.gravity_jacobian[:, :, j]
+                continue
+            qd, q = s.qd[:, j], s.q[:, j]
+            if self.name == "coulomb_friction":
+                cols = [np.tanh(qd / eps)]
+            elif self.name == "viscous_friction":
+                cols = [qd]
+            elif self.name == "stribeck_friction":
+                cols = [np.exp(-np.square(qd / self.variant["stribeck_velocity"])) * np.tanh(qd / eps)]
+            elif self.name == "armature":
+                cols = [s.qdd[:, j]]
+            elif self.name == "drive_gain":
+                cols = [s.tau_m[:, j]]
+            elif self.name == "torque_offset":
+                cols = [-np.ones(t)]
+            elif self.name == "position_ripple":
+                k = self.variant["cycles_per_rev"]
+                cols = [-np.sin(k * q), -np.cos(k * q)]
+            else:
+                raise ValueError(f"unknown effect {self.name!r}")
+            width = len(cols)
+            for c, col in enumerate(cols):
+                out[:, j, i * width + c] = col
+        return out
+
+
+def variants(name: str) -> list[dict[str, float]]:
+    """The fixed settings an effect is tried with."""
+    if name == "stribeck_friction":
+        return [{"stribeck_velocity": v, "epsilon": TANH_EPSILON} for v in STRIBECK_VELOCITIES]
+    if name == "position_ripple":
+        return [{"cycles_per_rev": float(k)} for k in RIPPLE_CYCLES]
+    if name == "coulomb_friction":
+        return [{"epsilon": TANH_EPSILON}]
+    return [{}]
+
+
+def _cov_block(cov: np.ndarray | None, sl: slice) -> np.ndarray | None:
+    return None if cov is None else cov[sl, sl]
+
+
+def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None) -> tuple[dict, dict]:
+    """Parameters in physical units and their 95 % half-widths (delta method for derived ones)."""
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)) if cov is not None else np.full(len(theta), np.nan)
+    half = 1.96 * sd
+    if term.name == "payload":
+        return payload_parameters(theta, cov)
+    k = len(term.per_joint_parameters)
+    values = theta.reshape(len(term.joints), k)
+    widths = half.reshape(len(term.joints), k)
+    if term.name == "drive_gain":     # gap = (1 − g) τ_m: θ = 1 − g
+        return {"gain": (1.0 - values[:, 0]).tolist()}, {"gain": widths[:, 0].tolist()}
+    if term.name == "position_ripple":
+        a, b = values[:, 0], values[:, 1]
+        params = {"cycles_per_rev": term.variant["cycles_per_rev"], "sin_amplitude": a.tolist(),
+                  "cos_amplitude": b.tolist(), "amplitude": np.hypot(a, b).tolist()}
+        return params, {"sin_amplitude": widths[:, 0].tolist(), "cos_amplitude": widths[:, 1].tolist()}
+    key = term.per_joint_parameters[0]
+    params: dict[str, Any] = {key: values[:, 0].tolist()}
+    params.update({name: value for name, value in term.variant.items()})
+    return params, {key: widths[:, 0].tolist()}
+
+
+def payload_parameters(theta: np.ndarray, cov: np.ndarray | None) -> tuple[dict, dict]:
+    """Mass, CoM (flange frame) and inertia about the CoM ``[ixx, iyy, izz, ixy, ixz, iyz]``;
+    physical consistency: mass > 0 and positive semi-definite inertia about the CoM."""
+    m, h = float(theta[0]), np.asarray(theta[1:4], dtype=float)
+    com = h / m
+    ixx, ixy, iyy, ixz, iyz, izz = theta[4:10]
+    i_origin = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
+    i_com = i_origin - m * (float(com @ com) * np.eye(3) - np.outer(com, com))
+    eig = np.linalg.eigvalsh(i_com)
+    params = {"mass": m, "com": com.tolist(),
+              "inertia": [float(v) for v in (i_com[0, 0], i_com[1, 1], i_com[2, 2], i_com[0, 1], i_com[0, 2],
+                                             i_com[1, 2])],
+              "inertia_eigenvalues": eig.tolist(),
+              "physically_consistent": bool(m > 0 and eig.min() >= -1e-3 * max(1.0, m))}
+    # ≥ −1e-3 kg·m²·(m/kg): a point mass's inertia about its CoM is 0, which noise makes slightly indefinite
+    ci: dict[str, Any] = {}
+    if cov is not None:
+        ci["mass"] = 1.96 * float(np.sqrt(max(cov[0, 0], 0.0)))
+        com_ci = []
+        for i in range(3):
+            grad = np.zeros(10)
+            grad[0], grad[1 + i] = -h[i] / m ** 2, 1.0 / m
+            com_ci.append(1.96 * float(np.sqrt(max(grad @ cov @ grad, 0.0))))
+        ci["com"] = com_ci
+    return params, ci
+
+
+def term_from_entry(entry: Mapping[str, Any], joint_names: Sequence[str]) -> tuple[Term, np.ndarray]:
+    """A Term and its raw parameter vector θ from one ``augmentation.yaml`` effect entry."""
+    joints = tuple(int(j) for j in entry["joint_indices"])
+    variant = {k: float(v) for k, v in (entry.get("variant") or {}).items()}
+    term = Term(entry["name"], joints, variant)
+    return term, np.asarray(entry["theta"], dtype=float)
+
+
+def augmentation_gap(augmentation: Mapping[str, Any], robot: RobotModel, q: np.ndarray, qd: np.ndarray,
+                     qdd: np.ndarray, tau_m: np.ndarray) -> np.ndarray:
+    """Predicted gap ``τ_m − τ_EL`` (T, n) of an augmentation (the dict of ``augmentation.yaml``):
+    what an estimator subtracts from its residual to run on the improved model."""
+    q, qd, qdd, tau_m = (np.atleast_2d(np.asarray(a, dtype=float)) for a in (q, qd, qdd, tau_m))
+    s = signals(robot, q, qd, qdd, tau_m)
+    total = np.zeros_like(q)
+    for entry in augmentation.get("effects", []):
+        term, theta = term_from_entry(entry, robot.joint_names)
+        total += term.design(s) @ theta
+    return total

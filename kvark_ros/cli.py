@@ -9,6 +9,7 @@ from kvark_ros.core.config import ConfigError
 from kvark_ros.core.observers import ObserverError
 from kvark_ros.core.residual_model import ResidualModelError
 from kvark_ros.core.robot_model import RobotModelError
+from kvark_ros.gap import diagnose
 from kvark_ros.io.bag import BagError
 from kvark_ros.sim.plant import PlantError
 from kvark_ros.tools import bench, benchmark, replay, soak, train
@@ -29,6 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     else:
         simulate = add_simulate_parser(subparsers)
         simulate.set_defaults(run=simulate.get_default("func"))
+    diagnose.add_parser(subparsers)
     train.add_parser(subparsers)
     replay.add_parser(subparsers)
     benchmark.add_parser(subparsers)

@@ -26,7 +26,7 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 from scipy.stats import chi2
 
-from kvark_ros.core.config import parameter_defaults
+from kvark_ros.core.config import flatten_parameters, parameter_defaults
 from kvark_ros.core.estimator import Status
 from kvark_ros.core.model_store import load_model, save_model
 from kvark_ros.io.alignment import estimator_inputs
@@ -75,20 +75,12 @@ def ros():
         sys.modules.update(saved)
 
 
-def flatten(tree: dict, prefix: str = "") -> dict:
-    out = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            out.update(flatten(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
 
 
 def node_parameters(model_dir: Path, **changes) -> dict:
     """config/panda.yaml as the node's dotted parameters, with our model directory."""
     document = yaml.safe_load((ROOT / "config" / "panda.yaml").read_text())
-    parameters = flatten(document["kvark_estimator"]["ros__parameters"])
+    parameters = flatten_parameters(document["kvark_estimator"]["ros__parameters"])
     parameters["residual_model.model_dir"] = str(model_dir)
     parameters.update({key.replace("__", "."): value for key, value in changes.items()})
     return parameters

@@ -23,6 +23,7 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from kvark_ros.core.config import flatten_parameters
 from kvark_ros.core.estimator import Estimator, Status
 from kvark_ros.core.model_store import save_model
 from kvark_ros.core.observers import make_observer
@@ -282,14 +283,6 @@ def ros():
         sys.modules.update(saved)
 
 
-def _flatten(tree: dict, prefix: str = "") -> dict:
-    out = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            out.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
 
 
 @pytest.fixture(scope="module")
@@ -298,7 +291,7 @@ def node(ros, trained, tmp_path_factory):
     directory = tmp_path_factory.mktemp("reliability_model") / "panda"
     save_model(directory, trained)
     document = yaml.safe_load((ROOT / "config" / "panda.yaml").read_text())
-    parameters = _flatten(document["kvark_estimator"]["ros__parameters"])
+    parameters = flatten_parameters(document["kvark_estimator"]["ros__parameters"])
     parameters["residual_model.model_dir"] = str(directory)
     ros.core.reset()
     ros.rclpy.init()

@@ -130,13 +130,13 @@ _SCHEMA: dict[str, tuple[Callable, str, Any]] = {
 }
 
 
-def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+def flatten_parameters(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     """Nested YAML groups to dotted ROS parameter names (payload vectors stay lists)."""
     flat: dict[str, Any] = {}
     for key, value in tree.items():
         name = f"{prefix}{key}"
         if isinstance(value, Mapping):
-            flat.update(_flatten(value, f"{name}."))
+            flat.update(flatten_parameters(value, f"{name}."))
         else:
             flat[name] = value
     return flat
@@ -229,7 +229,7 @@ def load_config(path: str | os.PathLike, **overrides: Any) -> EstimatorConfig:
         raise ConfigError(f"{source}: expected a top-level '{NODE_NAME}: ros__parameters:' mapping") from exc
     if not isinstance(parameters, Mapping):
         raise ConfigError(f"{source}: '{NODE_NAME}.ros__parameters' must be a mapping")
-    flat = _flatten(parameters)
+    flat = flatten_parameters(parameters)
     flat.update({key.replace("__", "."): value for key, value in overrides.items()})
     config = config_from_parameters(flat, source)
     root = Path(path).resolve().parent.parent

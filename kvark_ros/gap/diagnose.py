@@ -24,12 +24,13 @@ import numpy as np
 import yaml
 from scipy.optimize import lsq_linear
 
+from kvark_ros.core.config import load_config
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.gap.effects import (EFFECT_NAMES, MAX_GAIN_ERROR, PER_JOINT, Signals, Term, payload_parameters,
                                    physical_parameters, signals,
                                    variants)
 from kvark_ros.io.alignment import EstimatorInputs
-from kvark_ros.tools.train import SAVGOL_WINDOW, smoothed_signals
+from kvark_ros.tools.train import SAVGOL_WINDOW, load_recordings, smoothed_signals
 
 HOLDOUT = 0.3            # share of every recording (its end) held out
 MIN_REDUCTION = 0.05     # an effect must cut the held-out gap of its joints by ≥ 5 %
@@ -353,18 +354,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from kvark_ros.core.config import load_config
-    from kvark_ros.io.alignment import estimator_inputs
-    from kvark_ros.io.bag import read_run
-
     config = load_config(args.config)
     robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
-    segments = []
-    for bag in args.bags:
-        inputs = estimator_inputs(read_run(bag, config.joint_names), config.command_max_age, path=str(bag))
-        print(f"[diagnose] {bag}: {len(inputs)} samples (τ_m from {inputs.torque_source}, "
-              f"{inputs.dropped} dropped)", flush=True)
-        segments.append(inputs)
+    segments = load_recordings(config, args.bags, "diagnose")
     log = lambda line: print(line, flush=True)   # noqa: E731
     diag = diagnose(robot, segments, args.holdout, log=log)
     write_outputs(diag, robot, Path(args.out), config.robot, plots=not args.no_plots, log=log)

@@ -194,15 +194,21 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(run=run)
 
 
+def load_recordings(config: EstimatorConfig, bags: Sequence[str], tag: str) -> list[EstimatorInputs]:
+    """Estimator inputs of every bag, with one status line each (shared by train and diagnose)."""
+    segments = []
+    for bag in bags:
+        inputs = estimator_inputs(read_run(bag, config.joint_names), config.command_max_age, path=str(bag))
+        print(f"[{tag}] {bag}: {len(inputs)} samples (τ_m from {inputs.torque_source}, "
+              f"{inputs.dropped} dropped)", flush=True)
+        segments.append(inputs)
+    return segments
+
+
 def run(args: argparse.Namespace) -> int:
     config: EstimatorConfig = load_config(args.config)
     robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
-    segments = []
-    for bag in args.bags:
-        inputs = estimator_inputs(read_run(bag, config.joint_names), config.command_max_age, path=str(bag))
-        print(f"[train] {bag}: {len(inputs)} samples (τ_m from {inputs.torque_source}, "
-              f"{inputs.dropped} dropped)", flush=True)
-        segments.append(inputs)
+    segments = load_recordings(config, args.bags, "train")
     info = {"robot": config.robot, "joint_names": list(config.joint_names),
             "urdf_sha256": urdf_sha256(config.urdf),
             "bags": [{"name": Path(bag).name, "sha256": bag_hash(Path(bag))} for bag in args.bags]}

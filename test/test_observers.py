@@ -157,7 +157,7 @@ def test_smoothed_vb_statistic_equals_the_matrix_rts_smoother(panda_config, rng)
         A = rng.normal(size=(2, 2))
         P0 = A @ A.T + 0.1 * np.eye(2)
         Q = np.diag(rng.uniform(1e-6, 1e-2, 2))
-        R, nu, e_prior = rng.uniform(1e-4, 1e-1), rng.normal(), rng.normal(size=2)
+        R, nu = rng.uniform(1e-4, 1e-1), rng.normal()
         P_pred = F @ P0 @ F.T + Q
         _, tau, a, b, c, s, k2 = joseph_update(np.zeros(1), np.zeros(1), *(np.array([v]) for v in
                                                (P_pred[0, 0], P_pred[0, 1], P_pred[1, 1])), np.array([nu]),

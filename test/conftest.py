@@ -1,7 +1,10 @@
 """Shared fixtures: the Panda's nominal model and config, and a small trained model."""
 from __future__ import annotations
 
+import importlib
+import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -10,6 +13,10 @@ from kvark_ros.core.config import load_config
 from kvark_ros.core.robot_model import RobotModel
 
 ROOT = Path(__file__).resolve().parents[1]
+STAND_IN = Path(__file__).resolve().parent / "ros_stand_in"
+STAND_IN_MODULES = {"rclpy", "rcl_interfaces", "builtin_interfaces", "std_msgs", "sensor_msgs", "geometry_msgs",
+                    "std_srvs", "diagnostic_msgs", "ros_stand_in_core"}
+NODE_MODULE = "kvark_ros.ros.estimator_node"
 
 
 @pytest.fixture(scope="session")
@@ -33,3 +40,35 @@ def panda_trained(panda):
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="module")
+def ros():
+    """The ROS node module imported against the suite's rclpy stand-in (``test/ros_stand_in``).
+
+    The stand-in is on ``sys.path`` only while a test module uses this fixture; the node module and
+    the stand-in's packages are removed from ``sys.modules`` afterwards, so nothing leaks.
+    """
+    def ours(name: str) -> bool:
+        return name.split(".")[0] in STAND_IN_MODULES or name == NODE_MODULE
+
+    saved = {name: module for name, module in sys.modules.items() if ours(name)}
+    for name in saved:
+        del sys.modules[name]
+    sys.path.insert(0, str(STAND_IN))
+    try:
+        importlib.invalidate_caches()
+        node_module = importlib.import_module(NODE_MODULE)
+        rclpy = importlib.import_module("rclpy")
+        assert rclpy.STAND_IN, "the stand-in, not a real rclpy, must be under test here"
+        yield SimpleNamespace(
+            node=node_module, rclpy=rclpy, core=importlib.import_module("ros_stand_in_core"),
+            Parameter=importlib.import_module("rclpy.parameter").Parameter,
+            builtin=importlib.import_module("builtin_interfaces.msg"), std=importlib.import_module("std_msgs.msg"),
+            sensor=importlib.import_module("sensor_msgs.msg"), diag=importlib.import_module("diagnostic_msgs.msg"),
+            exceptions=importlib.import_module("rclpy.exceptions"))
+    finally:
+        sys.path.remove(str(STAND_IN))
+        for name in [name for name in sys.modules if ours(name)]:
+            del sys.modules[name]
+        sys.modules.update(saved)

@@ -1,7 +1,7 @@
 """The ROS 2 estimator node, driven through the test suite's rclpy STAND-IN, not through ROS.
 
 rclpy is not installable here, so ``test/ros_stand_in`` (owned by this suite; see its
-``ros_stand_in_core`` docstring) fakes the rclpy API the node uses. The ``ros`` fixture puts it
+``ros_stand_in_core`` docstring) fakes the rclpy API the node uses. The ``ros`` fixture (conftest.py) puts it
 on ``sys.path`` for this module only and removes it afterwards. Messages from simulated bags are
 fed to the node's subscriptions in log order with the stand-in clock at each message's log time;
 the node's outputs are compared with ``kvark replay``'s ``run_observer`` on the same bag.
@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import array
 import copy
-import importlib
 import math
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -36,45 +34,8 @@ from kvark_ros.tools.replay import run_observer
 from kvark_ros.tools.train import train_model
 
 ROOT = Path(__file__).resolve().parents[1]
-STAND_IN = Path(__file__).resolve().parent / "ros_stand_in"
-STAND_IN_MODULES = {"rclpy", "rcl_interfaces", "builtin_interfaces", "std_msgs", "sensor_msgs", "geometry_msgs",
-                    "std_srvs", "diagnostic_msgs", "ros_stand_in_core"}
-NODE_MODULE = "kvark_ros.ros.estimator_node"
 OUT = "/kvark_estimator"
 TOPICS = ("/joint_states", "/effort_commands")
-
-
-# --------------------------------------------------------------------------- the stand-in
-
-
-@pytest.fixture(scope="module")
-def ros():
-    """The node module imported against the stand-in, which is on sys.path for this module only."""
-    def ours(name: str) -> bool:
-        return name.split(".")[0] in STAND_IN_MODULES or name == NODE_MODULE
-
-    saved = {name: module for name, module in sys.modules.items() if ours(name)}
-    for name in saved:
-        del sys.modules[name]
-    sys.path.insert(0, str(STAND_IN))
-    try:
-        importlib.invalidate_caches()
-        node_module = importlib.import_module(NODE_MODULE)
-        rclpy = importlib.import_module("rclpy")
-        assert rclpy.STAND_IN, "the stand-in, not a real rclpy, must be under test here"
-        yield SimpleNamespace(
-            node=node_module, rclpy=rclpy, core=importlib.import_module("ros_stand_in_core"),
-            Parameter=importlib.import_module("rclpy.parameter").Parameter,
-            builtin=importlib.import_module("builtin_interfaces.msg"), std=importlib.import_module("std_msgs.msg"),
-            sensor=importlib.import_module("sensor_msgs.msg"), diag=importlib.import_module("diagnostic_msgs.msg"),
-            exceptions=importlib.import_module("rclpy.exceptions"))
-    finally:
-        sys.path.remove(str(STAND_IN))
-        for name in [name for name in sys.modules if ours(name)]:
-            del sys.modules[name]
-        sys.modules.update(saved)
-
-
 
 
 def node_parameters(model_dir: Path, **changes) -> dict:

@@ -11,9 +11,7 @@ examples per property; one estimator and one node are built per module and reset
 from __future__ import annotations
 
 import array
-import importlib
 import math
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -247,42 +245,9 @@ def test_any_input_sequence_gives_finite_output_or_none_and_counts_every_step(es
 
 # --------------------------------------------------------------------------- the ROS node (stand-in)
 
-STAND_IN = Path(__file__).resolve().parent / "ros_stand_in"
-STAND_IN_MODULES = {"rclpy", "rcl_interfaces", "builtin_interfaces", "std_msgs", "sensor_msgs", "geometry_msgs",
-                    "std_srvs", "diagnostic_msgs", "ros_stand_in_core"}
-NODE_MODULE = "kvark_ros.ros.estimator_node"
 OUT = "/kvark_estimator"
 OUTPUT_TOPICS = (f"{OUT}/external_joint_torque", f"{OUT}/external_wrench", f"{OUT}/external_joint_torque_stddev",
                  f"{OUT}/external_wrench_covariance")
-
-
-@pytest.fixture(scope="module")
-def ros():
-    """The node module imported against the stand-in (on sys.path for this module only)."""
-    def ours(name: str) -> bool:
-        return name.split(".")[0] in STAND_IN_MODULES or name == NODE_MODULE
-
-    saved = {name: module for name, module in sys.modules.items() if ours(name)}
-    for name in saved:
-        del sys.modules[name]
-    sys.path.insert(0, str(STAND_IN))
-    try:
-        importlib.invalidate_caches()
-        node_module = importlib.import_module(NODE_MODULE)
-        rclpy = importlib.import_module("rclpy")
-        assert rclpy.STAND_IN
-        yield SimpleNamespace(
-            node=node_module, rclpy=rclpy, core=importlib.import_module("ros_stand_in_core"),
-            Parameter=importlib.import_module("rclpy.parameter").Parameter,
-            builtin=importlib.import_module("builtin_interfaces.msg"), std=importlib.import_module("std_msgs.msg"),
-            sensor=importlib.import_module("sensor_msgs.msg"))
-    finally:
-        sys.path.remove(str(STAND_IN))
-        for name in [name for name in sys.modules if ours(name)]:
-            del sys.modules[name]
-        sys.modules.update(saved)
-
-
 
 
 @pytest.fixture(scope="module")

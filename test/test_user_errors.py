@@ -352,6 +352,17 @@ def test_replay_with_a_bad_plant_file(files, tmp_path, capsys, case):
 
 # --------------------------------------------------------------------------- (11) interrupted training
 
+def _assert_interrupted_training_keeps_the_model(files, tmp_path, capsys) -> None:
+    """`kvark train` over a copy of the model: exit 130, one line, the old model byte-identical, nothing beside it."""
+    target = _copy_model(files, tmp_path)
+    before = _snapshot(target)
+    code, err = _cli(capsys, _train(files, tmp_path, target))
+    assert code == 130
+    assert err.strip() == "kvark: interrupted" and "Traceback" not in err
+    assert _snapshot(target) == before
+    assert sorted(p.name for p in target.parent.iterdir()) == ["panda"]
+
+
 def test_train_interrupted_during_the_fit_exits_130_and_keeps_the_previous_model(
         files, tmp_path, capsys, monkeypatch):
     import kvark_ros.core.residual_baselines as baselines
@@ -360,13 +371,7 @@ def test_train_interrupted_during_the_fit_exits_130_and_keeps_the_previous_model
         raise KeyboardInterrupt
 
     monkeypatch.setattr(baselines, "hyperparameters_from_gp", interrupted)
-    target = _copy_model(files, tmp_path)
-    before = _snapshot(target)
-    code, err = _cli(capsys, _train(files, tmp_path, target))
-    assert code == 130
-    assert err.strip() == "kvark: interrupted" and "Traceback" not in err
-    assert _snapshot(target) == before
-    assert sorted(p.name for p in target.parent.iterdir()) == ["panda"]
+    _assert_interrupted_training_keeps_the_model(files, tmp_path, capsys)
 
 
 def test_train_interrupted_while_saving_exits_130_and_keeps_the_previous_model(
@@ -384,13 +389,7 @@ def test_train_interrupted_while_saving_exits_130_and_keeps_the_previous_model(
         raise KeyboardInterrupt
 
     monkeypatch.setattr(KMPResidualModel, "save", interrupted_save)
-    target = _copy_model(files, tmp_path)
-    before = _snapshot(target)
-    code, err = _cli(capsys, _train(files, tmp_path, target))
-    assert code == 130
-    assert err.strip() == "kvark: interrupted" and "Traceback" not in err
-    assert _snapshot(target) == before
-    assert sorted(p.name for p in target.parent.iterdir()) == ["panda"]
+    _assert_interrupted_training_keeps_the_model(files, tmp_path, capsys)
 
 
 def test_train_interrupted_with_no_previous_model_leaves_nothing(files, tmp_path, capsys, monkeypatch):

@@ -81,6 +81,8 @@ def test_plant_effects_collect_offset_ripple_and_friction() -> None:
     ({"noise": {"encoder_counts_per_rev": 1.5}}, "noise.encoder_counts_per_rev"),
     ({"noise": {"torque_std": "high"}}, "noise.torque_std"),
     ({"control_rate_hz": 250}, "control_rate_hz"),
+    ({"joint_offset": [0.01] * 6}, "joint_offset"),
+    ({"joint_offset": [float("nan")] * 7}, "joint_offset"),
 ])
 def test_bad_plant_values_name_the_key(plant: dict[str, object], key: str) -> None:
     with pytest.raises(ValueError, match=key.replace(".", r"\.")):
@@ -268,6 +270,28 @@ def test_every_joint_effect_is_simulated_as_the_plant_file_says() -> None:
     expected = residual_torque(spec, truth.q, truth.qd, truth.qdd, tau_m)
     np.testing.assert_allclose(gap[sliding], expected[sliding], atol=1e-6)
     assert sliding.mean() > 0.5
+
+
+def test_joint_offset_is_an_encoder_error_only() -> None:
+    """The recorded position is the true one plus the offset (quantised); the arm starts where
+    the encoders read the trajectory's start, and the dynamics run at the true position."""
+    offset = [0.03, -0.05, 0.02, 0.0, 0.0, 0.01]
+    counts = 2**16
+    spec = load_plant({"joint_offset": offset, "noise": {"encoder_counts_per_rev": counts}}, 6)
+    np.testing.assert_array_equal(spec.joint_offset, offset)
+    np.testing.assert_array_equal(load_plant({}, 6).joint_offset, 0.0)
+    out = run_scenario("ur5", "excitation", seed=7, duration=0.6, plant=spec)
+    truth, position = out.truth, out.run.joint_states.position
+    np.testing.assert_allclose(position, truth.q + offset, atol=0.5 * 2.0 * np.pi / counts + 1e-12)
+    assert np.abs(position - truth.q - offset).max() > 0.0          # quantised, not a copy
+    bare = run_scenario("ur5", "excitation", seed=7, duration=0.6,
+                        plant={"noise": {"encoder_counts_per_rev": counts}})
+    np.testing.assert_allclose(position[0], bare.run.joint_states.position[0], atol=2.0 * np.pi / counts)
+    # The dynamics use the true position: τ_m is the nominal inverse dynamics there, not at the reading.
+    gap_true = out.run.commands.effort - _nominal_id("ur5", truth.q, truth.qd, truth.qdd)
+    gap_read = out.run.commands.effort - _nominal_id("ur5", position, truth.qd, truth.qdd)
+    np.testing.assert_allclose(gap_true, 0.0, atol=1e-8)
+    assert np.abs(gap_read[:, 1]).max() > 0.1                      # shoulder: g(q) − g(q + δ) ≈ 0.05 rad · ∂g/∂q
 
 
 # ----------------------------------------------------------------------------- bags and CLI

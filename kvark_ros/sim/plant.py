@@ -16,6 +16,7 @@ A plant file is YAML; every key is optional and a missing key means "as the URDF
     drive_gain: [...]               # the joint produces drive_gain × commanded torque
     torque_offset: [...]            # N·m added by the drive
     position_ripple: {amplitude: [...] N·m, cycles_per_rev: [...]}   # amplitude·sin(cycles·q)
+    joint_offset: [...]             # rad, encoder zero error: the encoder reads q + joint_offset
     noise: {torque_std: N·m, torque_std_per_rad_s: N·m·s/rad, encoder_counts_per_rev: int}
     control_rate_hz: 1000           # 1000 or 500: rate of the simulated controller
 
@@ -24,7 +25,10 @@ be a single number for every joint. Dynamics of the plant (joint j):
 
     M q̈ + C q̇ + g + τ_f(q̇) = drive_gain ⊙ τ_m + torque_offset + ripple(q) + τ_ext
 
-with M including armature and payload. Bags never carry the plant file.
+with M including armature and payload, all evaluated at the true q. A joint offset is a sensor
+effect only: the recorded (and controlled) position is ``q + joint_offset`` (then quantised), so a
+model evaluated at the recorded position misses ``g(q) − g(q + δ) ≈ −∂g/∂q δ``.
+Bags never carry the plant file.
 """
 from __future__ import annotations
 
@@ -55,7 +59,7 @@ _FRICTION_PARAMETERS = {
 _REQUIRED = {"gaz_sigmoid": ("phi1", "phi2", "phi3"), "coulomb_viscous": ("coulomb",),
              "stribeck": ("coulomb", "static", "stribeck_velocity")}
 _TOP_KEYS = ("friction", "armature", "payload", "drive_gain", "torque_offset", "position_ripple",
-             "noise", "control_rate_hz")
+             "joint_offset", "noise", "control_rate_hz")
 
 
 def _frozen(values: Any) -> FloatArray:
@@ -84,6 +88,7 @@ class PlantSpec:
     torque_offset: FloatArray
     ripple_amplitude: FloatArray
     ripple_cycles: FloatArray
+    joint_offset: FloatArray
     torque_std: FloatArray
     torque_std_per_rad_s: FloatArray
     encoder_counts_per_rev: int | None
@@ -211,6 +216,7 @@ class _Parser:
             ripple_amplitude=get(ripple, "amplitude", "position_ripple.amplitude", zeros),
             ripple_cycles=get(ripple, "cycles_per_rev", "position_ripple.cycles_per_rev", zeros,
                               minimum=0.0),
+            joint_offset=get(data, "joint_offset", "joint_offset", zeros),
             torque_std=get(noise, "torque_std", "noise.torque_std", zeros, minimum=0.0,
                            scalar_ok=True),
             torque_std_per_rad_s=get(noise, "torque_std_per_rad_s", "noise.torque_std_per_rad_s",
@@ -332,7 +338,9 @@ def residual_torque(spec: PlantSpec, q: npt.ArrayLike, qd: npt.ArrayLike, qdd: n
     """True ``τ_m − τ_EL`` of a payload-free, contact-free motion, N·m (paper eq. 27).
 
     ``(1 − drive_gain) ⊙ τ_m + plant_effects(q, q̇) + armature ⊙ q̈``: what a perfect residual
-    model would learn (the oracle's residual).
+    model would learn (the oracle's residual). q is the true position; a ``joint_offset`` adds
+    ``g(q) − g(q + joint_offset)`` to the gap seen at the recorded position, which needs the
+    robot model and is not included here.
     """
     return ((1.0 - spec.drive_gain) * np.asarray(tau_m, dtype=float) + plant_effects(spec, q, qd)
             + spec.armature * np.asarray(qdd, dtype=float))

@@ -5,7 +5,8 @@ Timing: physics at 1 kHz (``PHYSICS_DT``), the controller at the plant file's
 stamp t_k holds what the controller saw at t_k and the command it sent then.
 
 Measured signals (what a real robot reports):
-  position = true q quantised to the encoder resolution Δ = 2π/counts;
+  position = true q + joint_offset (the plant's encoder zero error), quantised to the encoder
+  resolution Δ = 2π/counts; the controller sees this position too;
   velocity = true q̇ + N(0, σ_v²), σ_v = Δ / (t_log √6): the spread of a finite difference of
   two independently quantised positions one log period apart;
   effort = drive torque ``drive_gain ⊙ τ_m + offset + ripple(q)`` + N(0, σ²),
@@ -226,6 +227,9 @@ def run_simulation(setup: RobotSetup, plant: PlantSpec, controller: Controller, 
                    progress: bool | None = None, label: str = "") -> SimulationOutput:
     """Simulate ``duration`` s from rest at ``start`` (rad) and record it (see module docstring).
 
+    ``start`` is the position the encoders read at t = 0: the arm starts at ``start −
+    joint_offset``, so a controller tracking a trajectory that begins at ``start`` starts on it.
+
     controller(t, q_measured, q̇_measured) → τ_m runs at the plant's control rate; ``forces``
     act every physics step; ``rng`` draws the sensor noise. progress: True/False shows/hides a
     tqdm bar, None shows it on a terminal only; either way it appears only for runs that take
@@ -241,7 +245,7 @@ def run_simulation(setup: RobotSetup, plant: PlantSpec, controller: Controller, 
     resolution = plant.encoder_resolution
     velocity_std = resolution / (np.sqrt(6.0) / LOG_RATE_HZ)
     sim = MujocoPlant(setup, plant)
-    sim.reset(start)
+    sim.reset(np.asarray(start, dtype=float) - plant.joint_offset)
     nominal = setup.nominal_model()
     wrench_truth = _WrenchTruth(nominal, sim)
 
@@ -258,7 +262,8 @@ def run_simulation(setup: RobotSetup, plant: PlantSpec, controller: Controller, 
                 bar.update(_BLOCK * PHYSICS_DT)
         t = k * PHYSICS_DT
         q, qd = sim.q, sim.qd
-        q_meas = q if resolution == 0.0 else resolution * np.round(q / resolution)
+        q_read = q + plant.joint_offset
+        q_meas = q_read if resolution == 0.0 else resolution * np.round(q_read / resolution)
         qd_meas = qd + velocity_noise[k % _BLOCK]
         if k % control_every == 0:
             tau_m = controller(t, q_meas, qd_meas)

@@ -5,6 +5,7 @@ import argparse
 import sys
 
 from kvark_ros import __version__
+from kvark_ros.core.augmentation import AugmentationError
 from kvark_ros.core.config import ConfigError
 from kvark_ros.core.observers import ObserverError
 from kvark_ros.core.residual_model import ResidualModelError
@@ -14,7 +15,7 @@ from kvark_ros.io.bag import BagError
 from kvark_ros.sim.plant import PlantError
 from kvark_ros.tools import bench, benchmark, replay, soak, train
 
-USER_ERRORS = (ConfigError, ResidualModelError, RobotModelError, BagError, ObserverError, PlantError,
+USER_ERRORS = (AugmentationError, ConfigError, ResidualModelError, RobotModelError, BagError, ObserverError, PlantError,
                FileNotFoundError)
 
 

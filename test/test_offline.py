@@ -54,7 +54,7 @@ def config():
 
 @pytest.fixture(scope="module")
 def robot(config) -> RobotModel:
-    return RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
+    return RobotModel.from_config(config)
 
 
 @pytest.fixture(scope="module")

@@ -41,6 +41,7 @@ class EstimatorConfig:
     flange_frame: str
     payload: Payload | None
     model_dir: str
+    model_augmentation: str
     observer: str
     wrench_frame: str
     wrench_damping: float
@@ -110,6 +111,7 @@ _SCHEMA: dict[str, tuple[Callable, str, Any]] = {
     "robot_model.payload.com": (*_VECTOR3, [0.0, 0.0, 0.0]),
     "robot_model.payload.inertia": (*_VECTOR6, [0.0] * 6),
     "residual_model.model_dir": (*_TEXT, None),
+    "model_augmentation": ((lambda v: isinstance(v, str)), "a path to augmentation.yaml, or '' for none", ""),
     "observer": (*_choice(OBSERVER_NAMES), "kvark"),
     "wrench.frame": (*_choice(WRENCH_FRAMES), "base"),
     "wrench.damping": (*_number(0.0, 10.0), 0.05),
@@ -179,6 +181,7 @@ def config_from_parameters(parameters: Mapping[str, Any], source: str = "configu
         flange_frame=values["robot_model.flange_frame"],
         payload=payload,
         model_dir=values["residual_model.model_dir"],
+        model_augmentation=values["model_augmentation"],
         observer=values["observer"],
         wrench_frame=values["wrench.frame"],
         wrench_damping=values["wrench.damping"],
@@ -244,7 +247,8 @@ def with_resolved_paths(config: EstimatorConfig, root: Path) -> EstimatorConfig:
         candidate = root / text
         return str(candidate) if candidate.exists() else text
 
-    return replace(config, urdf=resolve(config.urdf), model_dir=resolve(config.model_dir))
+    return replace(config, urdf=resolve(config.urdf), model_dir=resolve(config.model_dir),
+                   model_augmentation=resolve(config.model_augmentation) if config.model_augmentation else "")
 
 
 def default_config_path(robot: str) -> Path:

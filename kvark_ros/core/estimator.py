@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from kvark_ros.core.augmentation import Augmentation, AugmentationError, load_augmentation
 from kvark_ros.core.config import EstimatorConfig
 from kvark_ros.core.model_store import TrainedModel, load_model
 from kvark_ros.core.observers import Observer, make_observer
@@ -45,6 +46,22 @@ class Status:
     DIVERGED_RESET = "reset: filter produced a non-finite estimate"
 
 
+def model_augmentation(config: EstimatorConfig, trained: TrainedModel) -> Augmentation | None:
+    """The augmentation the trained model was computed against (the model directory's copy).
+
+    When the config names one (``model_augmentation``) it must be that same file: residuals learned
+    on one model and applied on another would be silently wrong.
+    """
+    if not config.model_augmentation:
+        return trained.augmentation
+    wanted = load_augmentation(config.model_augmentation, config.joint_names)
+    if trained.augmentation is None or trained.augmentation.sha256 != wanted.sha256:
+        how = "without an augmentation" if trained.augmentation is None else "with another augmentation"
+        raise AugmentationError(f"{config.model_augmentation}: the model in {config.model_dir} was trained {how}; "
+                                "retrain with `kvark train` on this config, or set model_augmentation to ''")
+    return trained.augmentation
+
+
 class Estimator:
     """Steps an observer on (stamp, q, q̇, τ_m) samples and maps τ_ext to a wrench.
 
@@ -70,10 +87,9 @@ class Estimator:
         ``urdf`` overrides ``config.urdf`` (the node passes the ``robot_description`` string);
         ``plant`` is the simulator's plant spec, needed by the ``oracle`` observer only.
         """
-        robot = RobotModel(urdf or config.urdf, config.joint_names, config.ee_frame,
-                           config.flange_frame, config.payload)
         trained = trained or load_model(config.model_dir, config.joint_names,
                                         urdf_sha256(config.urdf) if urdf is None else None)
+        robot = RobotModel.from_config(config, model_augmentation(config, trained), urdf)
         return cls(config, robot, make_observer(observer or config.observer, trained, config, plant))
 
     def reset(self) -> None:

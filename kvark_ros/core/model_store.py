@@ -2,7 +2,9 @@
 
 Layout: ``model.yaml`` (robot, joint names, filter tunings, momentum-noise levels, provenance)
 beside the residual models' files: ``kmp.npz``/``kmp.yaml`` for K-VARK and, when trained, the
-baselines' ``gmr_gp``, ``sparse_gp`` and ``mlp`` files. Saving builds the whole directory next to the target and
+baselines' ``gmr_gp``, ``sparse_gp`` and ``mlp`` files, and ``augmentation.yaml`` when the model was
+trained on a model augmented by ``kvark diagnose`` (the residuals are relative to that model, so
+the estimator must use the same augmentation). Saving builds the whole directory next to the target and
 swaps it in with renames, so a failed save never leaves a half-written or broken model.
 """
 from __future__ import annotations
@@ -17,11 +19,13 @@ from typing import Any, Mapping
 import yaml
 
 from kvark_ros import __version__
+from kvark_ros.core.augmentation import Augmentation, AugmentationError, parse_augmentation
 from kvark_ros.core.observers.base import FilterTuning
 from kvark_ros.core.observers.momentum_observers import MomentumNoise
 from kvark_ros.core.residual_model import KMPResidualModel, ResidualModelError
 
 MODEL_FILE = "model.yaml"
+AUGMENTATION_FILE = "augmentation.yaml"
 MODEL_FORMAT = 1
 
 
@@ -32,6 +36,7 @@ class TrainedModel:
     residual: the KMP model; tuning: its filter tuning. baselines: the learned-residual
     baselines by observer name (``gmr_gp``, ``gpadkf``, ``nnadkf``) with their own tunings in
     ``baseline_tunings``. momentum_noise: noise levels of the residual-free momentum observers.
+    augmentation: the model augmentation the residuals were computed against, if any.
     """
 
     robot: str
@@ -42,6 +47,7 @@ class TrainedModel:
     baselines: Mapping[str, Any] = field(default_factory=dict)
     baseline_tunings: Mapping[str, FilterTuning] = field(default_factory=dict)
     momentum_noise: MomentumNoise | None = None
+    augmentation: Augmentation | None = None
 
 
 def _baseline_classes() -> dict[str, type]:
@@ -63,7 +69,10 @@ def save_model(directory: str | os.PathLike, model: TrainedModel) -> None:
                     "joint_names": list(model.joint_names), "filter_tuning": model.tuning.to_dict(),
                     "baselines": {name: model.baseline_tunings[name].to_dict() for name in model.baselines},
                     "momentum_noise": None if model.momentum_noise is None else model.momentum_noise.to_dict(),
+                    "augmentation_sha256": None if model.augmentation is None else model.augmentation.sha256,
                     "info": model.info}
+        if model.augmentation is not None:
+            (staging / AUGMENTATION_FILE).write_text(model.augmentation.text)
         (staging / MODEL_FILE).write_text(yaml.safe_dump(document, sort_keys=False))
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
@@ -129,9 +138,27 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
     if unknown:
         raise ResidualModelError(f"{path}: unknown baseline '{unknown[0]}'; retrain the model")
     baselines = {name: classes[name].load(directory) for name in baseline_tunings}
+    augmentation = _load_augmentation(Path(directory), names, document.get("augmentation_sha256"))
     sizes = {residual.n_joints, len(tuning.process_noise_density)}
     sizes |= {model.n_joints for model in baselines.values()}
     if sizes != {len(names)}:
         raise ResidualModelError(f"{path}: residual models and filter tunings disagree on the number of joints")
     return TrainedModel(robot, names, residual, tuning, dict(document.get("info") or {}), baselines,
-                        baseline_tunings, momentum_noise)
+                        baseline_tunings, momentum_noise, augmentation)
+
+
+def _load_augmentation(directory: Path, joint_names: tuple[str, ...], recorded: str | None) -> Augmentation | None:
+    """The model directory's augmentation; it must be there exactly when model.yaml records one."""
+    path = directory / AUGMENTATION_FILE
+    if recorded is None:
+        if path.exists():
+            raise ResidualModelError(f"{path}: model.yaml records no augmentation; retrain the model")
+        return None
+    try:
+        augmentation = parse_augmentation(path.read_text(), joint_names, str(path))
+    except (OSError, UnicodeDecodeError, AugmentationError) as exc:
+        raise ResidualModelError(f"{path}: missing or unreadable ({exc}); retrain the model") from exc
+    if augmentation.sha256 != recorded:
+        raise ResidualModelError(f"{path}: changed since training (sha256 differs from model.yaml); "
+                                 "retrain the model")
+    return augmentation

@@ -4,6 +4,10 @@ Everything the filters need from the robot lives here: generalized momentum and 
 (paper v1 eqs. 5-8), inverse dynamics (eq. 27's tau_EL), the frame Jacobian, and the damped
 pseudo-inverse that maps external joint torques to a wrench (paper v2 eq. 39).
 
+An ``Augmentation`` (``kvark diagnose``, DESIGN §6) adds the physical effects the URDF lacks:
+payload and armature inside M, C, g; the joint offset as a corrected q; friction, drive gain,
+offsets and ripple as a joint torque ``τ_aug(q, q̇, τ_m)`` the drive spends beyond the rigid body.
+
 Sign convention (DESIGN §1): ``M q̈ + C q̇ + g + τ_f = τ_m + τ_ext`` with ``τ_ext = Jᵀ F_ext``,
 ``F_ext`` the wrench the environment applies *to the robot* at the end-effector frame origin.
 """
@@ -14,12 +18,16 @@ import os
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import pinocchio as pin
 
+from kvark_ros.core.augmentation import Augmentation
 from kvark_ros.core.linalg import solve_spd
+
+if TYPE_CHECKING:
+    from kvark_ros.core.config import EstimatorConfig
 
 EXAMPLE_ROBOT_DATA_URDFS = {
     "panda": "robots/panda_description/urdf/panda.urdf",
@@ -101,10 +109,12 @@ class RobotModel:
         ee_frame: frame whose origin is the wrench reference point (e.g. ``panda_hand_tcp``).
         flange_frame: frame a payload is attached to (defaults to ``ee_frame``).
         payload: optional tool/payload added to the nominal model.
+        augmentation: optional effects found by ``kvark diagnose`` (same joints).
     """
 
     def __init__(self, urdf: str, joint_names: Sequence[str], ee_frame: str,
-                 flange_frame: str | None = None, payload: Payload | None = None) -> None:
+                 flange_frame: str | None = None, payload: Payload | None = None,
+                 augmentation: Augmentation | None = None) -> None:
         try:
             full = pin.buildModelFromXML(resolve_urdf(urdf))
         except RuntimeError as exc:
@@ -126,6 +136,10 @@ class RobotModel:
         self.joint_names = tuple(joint_names)
         self.ee_frame_id = self._frame_id(ee_frame)
         self.flange_frame_id = self._frame_id(flange_frame or ee_frame)
+        self.augmentation = augmentation
+        self._q_offset: np.ndarray | None = None
+        if augmentation is not None:
+            self._augment(augmentation)
         self._nominal_inertias = [pin.Inertia(inertia) for inertia in self.model.inertias]
         self.data = self.model.createData()
         self._zero = np.zeros(self.model.nv)
@@ -133,6 +147,13 @@ class RobotModel:
         self.payload: Payload | None = None
         if payload is not None:
             self.set_payload(payload)
+
+    @classmethod
+    def from_config(cls, config: "EstimatorConfig", augmentation: Augmentation | None = None,
+                    urdf: str | None = None) -> "RobotModel":
+        """The model a config describes; ``urdf`` overrides ``config.urdf`` (e.g. robot_description)."""
+        return cls(urdf or config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload,
+                   augmentation)
 
     @property
     def n(self) -> int:
@@ -143,6 +164,23 @@ class RobotModel:
         if not self.model.existFrame(name):
             raise RobotModelError(f"frame '{name}' is not in the URDF")
         return self.model.getFrameId(name)
+
+    def _augment(self, augmentation: Augmentation) -> None:
+        """Build the structural effects into the pinocchio model (before ``Data`` is made)."""
+        if augmentation.joint_names != self.joint_names:
+            raise RobotModelError(f"{augmentation.source}: augmentation joints {list(augmentation.joint_names)} "
+                                  f"differ from the model's {list(self.joint_names)}")
+        if augmentation.payload is not None:
+            frame = self.model.frames[self.flange_frame_id]
+            body = pin.Inertia.FromDynamicParameters(np.asarray(augmentation.payload, dtype=float))
+            self.model.inertias[frame.parentJoint] = self.model.inertias[frame.parentJoint] + frame.placement.act(body)
+        self.model.armature[self._index] += augmentation.armature
+        if np.any(augmentation.joint_offset):
+            self._q_offset = np.array(augmentation.joint_offset, dtype=float)
+
+    def _true_q(self, q: np.ndarray) -> np.ndarray:
+        """Joint position the model is evaluated at: the measured one minus the encoder offset."""
+        return q if self._q_offset is None else q - self._q_offset
 
     def set_payload(self, payload: Payload | None) -> None:
         """Attach (or with ``None`` remove) a payload at the flange; replaces any earlier one."""
@@ -157,7 +195,7 @@ class RobotModel:
 
     def mass_matrix(self, q: np.ndarray) -> np.ndarray:
         """M(q): (n, n) kg·m², symmetric."""
-        pin.crba(self.model, self.data, q)
+        pin.crba(self.model, self.data, self._true_q(q))
         upper = self.data.M
         return np.triu(upper) + np.triu(upper, 1).T
 
@@ -165,22 +203,34 @@ class RobotModel:
         """Generalized momentum and its model input.
 
         Returns ``p = M(q) q̇`` (eq. 5, N·m·s) and ``u = Cᵀ(q, q̇) q̇ − g(q) + τ_m`` (eq. 7, N·m),
-        so that ``ṗ = u + τ_ext − τ_f`` in our sign convention.
+        so that ``ṗ = u + τ_ext − τ_f`` in our sign convention. With an augmentation ``u`` uses
+        the torque the drive applies to the rigid body, ``τ_m − τ_aug``.
         """
-        gravity = pin.computeGeneralizedGravity(self.model, self.data, q).copy()
+        q_model = self._true_q(q)
+        gravity = pin.computeGeneralizedGravity(self.model, self.data, q_model).copy()
         # rnea(q, 0, q̇) = M q̇ + g: one O(n) pass instead of forming M.
-        p = pin.rnea(self.model, self.data, q, self._zero, qd) - gravity    # eq. 5
-        coriolis = pin.computeCoriolisMatrix(self.model, self.data, q, qd)
-        u = coriolis.T @ qd - gravity + tau_m                               # eq. 7
+        p = pin.rnea(self.model, self.data, q_model, self._zero, qd) - gravity    # eq. 5
+        coriolis = pin.computeCoriolisMatrix(self.model, self.data, q_model, qd)
+        u = coriolis.T @ qd - gravity + tau_m                                     # eq. 7
+        if self.augmentation is not None and self.augmentation.torque_effects:
+            u -= self.augmentation.joint_torque(q, qd, tau_m)
         return p, u
 
     def inverse_dynamics(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
-        """τ_EL = M q̈ + C q̇ + g (eq. 27), N·m."""
-        return pin.rnea(self.model, self.data, q, qd, qdd).copy()
+        """τ_EL = M q̈ + C q̇ + g (eq. 27), N·m (augmented M, C, g; without τ_aug)."""
+        return pin.rnea(self.model, self.data, self._true_q(q), qd, qdd).copy()
+
+    def model_torque(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, tau_m: np.ndarray) -> np.ndarray:
+        """What the improved model expects the drive to be commanded on a contact-free motion:
+        ``τ_EL + τ_aug(q, q̇, τ_m)`` (N·m); the nominal τ_EL without an augmentation."""
+        tau = self.inverse_dynamics(q, qd, qdd)
+        if self.augmentation is not None and self.augmentation.torque_effects:
+            tau += self.augmentation.joint_torque(q, qd, tau_m)
+        return tau
 
     def forward_dynamics(self, q: np.ndarray, qd: np.ndarray, tau: np.ndarray) -> np.ndarray:
         """q̈ from the articulated-body algorithm, rad/s²."""
-        return pin.aba(self.model, self.data, q, qd, tau).copy()
+        return pin.aba(self.model, self.data, self._true_q(q), qd, tau).copy()
 
     def jacobian(self, q: np.ndarray, frame: str = "base") -> np.ndarray:
         """(6, n) Jacobian of the end-effector frame origin: linear rows first.
@@ -189,7 +239,7 @@ class RobotModel:
         end-effector axes (LOCAL). Either way ``τ_ext = Jᵀ F`` for ``F`` expressed in the same axes.
         """
         reference = pin.LOCAL_WORLD_ALIGNED if frame == "base" else pin.LOCAL
-        return pin.computeFrameJacobian(self.model, self.data, q, self.ee_frame_id, reference)
+        return pin.computeFrameJacobian(self.model, self.data, self._true_q(q), self.ee_frame_id, reference)
 
     def wrench_from_torque(self, q: np.ndarray, tau_ext: np.ndarray, tau_cov: np.ndarray | None,
                            damping: float, frame: str = "base") -> tuple[np.ndarray, np.ndarray | None]:
@@ -209,14 +259,14 @@ class RobotModel:
 
     def sensor_torque(self, q: np.ndarray, frame: str, wrench: np.ndarray) -> np.ndarray:
         """``τ = Jᵀ w`` (paper v2 eq. 37) for a wrench (6,) measured in ``frame``'s own axes at its origin."""
-        jac = pin.computeFrameJacobian(self.model, self.data, q, self._frame_id(frame), pin.LOCAL)
+        jac = pin.computeFrameJacobian(self.model, self.data, self._true_q(q), self._frame_id(frame), pin.LOCAL)
         return jac.T @ wrench
 
     def wrench_at_end_effector(self, q: np.ndarray, frame: str, wrench: np.ndarray,
                                axes: str = "base") -> np.ndarray:
         """Re-express a wrench (6,) given in ``frame`` (its axes, its origin) at the end-effector
         origin, in base or end-effector axes: how a wrist F/T reading compares with our estimate."""
-        pin.framesForwardKinematics(self.model, self.data, q)
+        pin.framesForwardKinematics(self.model, self.data, self._true_q(q))
         in_world = self.data.oMf[self._frame_id(frame)].act(pin.Force(wrench[:3], wrench[3:]))
         ee = self.data.oMf[self.ee_frame_id]
         target = pin.SE3(np.eye(3), ee.translation) if axes == "base" else ee

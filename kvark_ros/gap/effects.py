@@ -23,13 +23,13 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import pinocchio as pin
 
+from kvark_ros.core.augmentation import TANH_EPSILON, joint_columns
 from kvark_ros.core.robot_model import RobotModel
 
 EFFECT_NAMES = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "payload",
                 "drive_gain", "torque_offset", "position_ripple", "joint_offset")
 PER_JOINT = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "drive_gain",
              "torque_offset", "position_ripple")
-TANH_EPSILON = 0.02                           # rad/s, width of the smoothed sign(q̇)
 STRIBECK_VELOCITIES = (0.03, 0.1, 0.3)        # rad/s, grid of v_s
 RIPPLE_CYCLES = (2, 3, 4, 6, 8, 12, 16, 24, 32, 50, 64, 100)   # cycles per revolution, grid of k
 PAYLOAD_PARAMETERS = ("mass", "mx", "my", "mz", "ixx", "ixy", "iyy", "ixz", "iyz", "izz")
@@ -133,29 +133,14 @@ class Term:
         if self.name == "payload":
             return s.payload_regressor
         out = np.zeros((t, n, self.size))
-        eps = self.variant.get("epsilon", TANH_EPSILON)
         for i, j in enumerate(self.joints):
             if self.name == "joint_offset":
                 out[:, :, i] = -s.gravity_jacobian[:, :, j]
                 continue
-            qd, q = s.qd[:, j], s.q[:, j]
-            if self.name == "coulomb_friction":
-                cols = [np.tanh(qd / eps)]
-            elif self.name == "viscous_friction":
-                cols = [qd]
-            elif self.name == "stribeck_friction":
-                cols = [np.exp(-np.square(qd / self.variant["stribeck_velocity"])) * np.tanh(qd / eps)]
-            elif self.name == "armature":
+            if self.name == "armature":
                 cols = [s.qdd[:, j]]
-            elif self.name == "drive_gain":
-                cols = [s.tau_m[:, j]]
-            elif self.name == "torque_offset":
-                cols = [-np.ones(t)]
-            elif self.name == "position_ripple":
-                k = self.variant["cycles_per_rev"]
-                cols = [-np.sin(k * q), -np.cos(k * q)]
             else:
-                raise ValueError(f"unknown effect {self.name!r}")
+                cols = joint_columns(self.name, self.variant, s.q[:, j], s.qd[:, j], s.tau_m[:, j])
             width = len(cols)
             for c, col in enumerate(cols):
                 out[:, j, i * width + c] = col

@@ -119,6 +119,8 @@ PARAMETERS: dict[str, ParameterSpec] = {
                                                  "6 numbers: ixx iyy izz ixy ixz iyz"),
     "residual_model.model_dir": ParameterSpec(T.STRING, "model directory written by kvark train (~/reload_model "
                                               "reloads it)", "directory with model.yaml"),
+    "model_augmentation": ParameterSpec(T.STRING, "augmentation.yaml of kvark diagnose; must be the one the model "
+                                        "was trained with ('' = the model directory's)", "path or ''"),
     "observer": ParameterSpec(T.STRING, "observer", f"one of {', '.join(OBSERVER_NAMES)}"),
     "wrench.frame": ParameterSpec(T.STRING, "axes of the published wrench", f"one of {', '.join(WRENCH_FRAMES)}",
                                   runtime=True),

@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     if args.duration <= 0:
         raise SystemExit("kvark bench: --duration must be positive")
     config = load_config(args.config or default_config_path(args.robot))
-    robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
+    robot = RobotModel.from_config(config)
     print(f"training a residual model on a 20 s synthetic free-motion stream of {config.robot} ...", flush=True)
     trained = train_synthetic(robot, config.robot, seed=args.seed,
                               baselines=any(name in LEARNED_BASELINE_VARIANTS for name in names))

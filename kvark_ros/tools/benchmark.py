@@ -142,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
     from kvark_ros.sim.plant import default_plant_path, load_plant
     plant = load_plant(default_plant_path(args.robot), config.n_joints)
     train_bags, test_bags = simulate_bags(args.robot, plan, out / "bags", args.seed, log)
-    robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
+    robot = RobotModel.from_config(config)
     segments = [estimator_inputs(read_run(bag, config.joint_names), config.command_max_age, path=str(bag))
                 for bag in train_bags]
     trained = train_model(robot, config.robot, segments, seed=args.seed, log=log,

@@ -155,7 +155,7 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
     if reference_bag is not None:
         reference = estimator_inputs(read_run(reference_bag, config.joint_names), config.command_max_age,
                                      path=str(reference_bag))
-    robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
+    robot = RobotModel.from_config(config, trained.augmentation)
     truth = ground_truth(robot, config, run, inputs, reference)
     decode_seconds = time.perf_counter() - started
     results = []
@@ -217,7 +217,10 @@ def run(args: argparse.Namespace) -> int:
     if args.plant:
         from kvark_ros.sim.plant import load_plant
         plant = load_plant(args.plant, config.n_joints)
-    observers = parse_observers(args.observers, plant is not None)
+    observers = parse_observers(args.observers, plant is not None and trained.augmentation is None)
+    if plant is not None and trained.augmentation is not None and args.observers == "all":
+        print("[replay] oracle skipped: it adds the plant's true friction to the nominal model, and this "
+              "model is augmented", flush=True)
     replay(config, trained, Path(args.bag), Path(args.out), observers,
            Path(args.reference_bag) if args.reference_bag else None, plant, write_bag=not args.no_bag,
            log=lambda line: print(line, flush=True))

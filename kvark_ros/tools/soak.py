@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("kvark soak: --steps and --check-every must be positive")
     config = load_config(args.config or default_config_path(args.robot))
     observer = args.observer or config.observer
-    robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
+    robot = RobotModel.from_config(config)
     from kvark_ros.tools.bench import train_synthetic
     print(f"training a residual model on a 20 s synthetic free-motion stream of {config.robot} ...", flush=True)
     trained = train_synthetic(robot, config.robot, seed=args.seed, baselines=observer in LEARNED_BASELINE_VARIANTS)

@@ -1,7 +1,8 @@
 """``kvark train``: residual models and filter tuning from contact-free ROS 2 bags.
 
 Per joint: residual ``τ_r = τ_m − τ_EL`` (paper eq. 27, accelerations by Savitzky-Golay
-differentiation since bags carry none), GMM → GMR → KMP with the length scale and λ₁ from a
+differentiation since bags carry none; with a model augmentation from ``kvark diagnose``, τ_EL is
+the augmented model's torque and the augmentation is stored with the model), GMM → GMR → KMP with the length scale and λ₁ from a
 GP marginal-likelihood fit and λ₂ calibrated on held-out samples (paper v2 §V-B), static
 filter covariances by covariance matching (v2 §V-D), and the baselines' residual models.
 The model directory is written atomically: a failed run leaves the previous model untouched.
@@ -19,6 +20,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from kvark_ros import __version__
+from kvark_ros.core.augmentation import load_augmentation
 from kvark_ros.core.config import EstimatorConfig, load_config
 from kvark_ros.core.model_store import TrainedModel, save_model
 from kvark_ros.core.observers.base import FilterTuning
@@ -63,11 +65,11 @@ def smoothed_signals(stamp: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> tu
 
 
 def training_data(robot: RobotModel, segments: Sequence[EstimatorInputs]) -> TrainingData:
-    """Residual torques ``τ_m − τ_EL`` (eq. 27) of every recording."""
+    """Residual torques ``τ_m − τ_EL`` (eq. 27; τ_EL + τ_aug when augmented) of every recording."""
     qd_all, tau_r_all = [], []
     for seg in segments:
         qdd, tau_m = smoothed_signals(seg.stamp, seg.qd, seg.tau_m)
-        tau_el = np.array([robot.inverse_dynamics(q, qd, a) for q, qd, a in zip(seg.q, seg.qd, qdd)])
+        tau_el = np.array([robot.model_torque(q, qd, a, tau) for q, qd, a, tau in zip(seg.q, seg.qd, qdd, tau_m)])
         qd_all.append(seg.qd)
         tau_r_all.append(tau_m - tau_el)
     return TrainingData(np.concatenate(qd_all), np.concatenate(tau_r_all), tuple(segments))
@@ -158,7 +160,8 @@ def train_model(robot: RobotModel, robot_name: str, segments: Sequence[Estimator
         "held_out_mean_std": np.sqrt(held_var.mean(axis=0)).tolist(),
         "training_seconds": round(time.perf_counter() - started, 1),
     })
-    return TrainedModel(robot_name, robot.joint_names, kmp, tuning, info, residuals, tunings, noise)
+    return TrainedModel(robot_name, robot.joint_names, kmp, tuning, info, residuals, tunings, noise,
+                        robot.augmentation)
 
 
 def sha256_file(path: Path) -> str:
@@ -187,6 +190,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--config", required=True, help="estimator config YAML (e.g. config/panda.yaml)")
     parser.add_argument("--bags", nargs="+", required=True, metavar="BAG", help="training bags (directories or files)")
     parser.add_argument("--out", required=True, help="model directory to write (replaced only on success)")
+    parser.add_argument("--augmentation", metavar="FILE",
+                        help="augmentation.yaml of `kvark diagnose` to train on the improved model (default: the "
+                             "config's model_augmentation; '' for none); copied into the model directory")
     parser.add_argument("--no-baselines", action="store_true",
                         help="skip the GMR-GP, sparse-GP and MLP baselines (faster)")
     parser.add_argument("--seed", type=int, default=0, help="random seed for the hold-out split and fits")
@@ -207,10 +213,17 @@ def load_recordings(config: EstimatorConfig, bags: Sequence[str], tag: str) -> l
 
 def run(args: argparse.Namespace) -> int:
     config: EstimatorConfig = load_config(args.config)
-    robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
+    source = config.model_augmentation if args.augmentation is None else args.augmentation
+    augmentation = load_augmentation(source, config.joint_names) if source else None
+    robot = RobotModel.from_config(config, augmentation)
+    if augmentation is not None:
+        print(f"[train] model augmented by {source}: {', '.join(augmentation.effect_names) or 'no effects'}",
+              flush=True)
     segments = load_recordings(config, args.bags, "train")
     info = {"robot": config.robot, "joint_names": list(config.joint_names),
             "urdf_sha256": urdf_sha256(config.urdf),
+            "augmentation": None if augmentation is None else {
+                "file": Path(source).name, "effects": list(augmentation.effect_names)},
             "bags": [{"name": Path(bag).name, "sha256": bag_hash(Path(bag))} for bag in args.bags]}
     trained = train_model(robot, config.robot, segments, baselines=not args.no_baselines, seed=args.seed,
                           info=info, log=lambda line: print(line, flush=True))

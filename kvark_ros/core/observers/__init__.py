@@ -84,6 +84,9 @@ def make_observer(name: str, trained: "TrainedModel", config: EstimatorConfig, p
     if name == "oracle":
         if plant is None:
             raise ObserverError("observer 'oracle' needs the simulator's plant file (pass --plant FILE)")
+        if trained.augmentation is not None:
+            raise ObserverError("observer 'oracle' adds the plant's true friction to the nominal model, but this "
+                                "model is augmented (kvark diagnose); use a model trained without augmentation")
         return _kvark("kvark", OracleResidual(plant, len(trained.joint_names)), trained.tuning, trained, config,
                       "oracle")
     raise ObserverError(f"unknown observer '{name}'; known: {', '.join(OBSERVER_NAMES)}")

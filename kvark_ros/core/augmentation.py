@@ -1,0 +1,183 @@
+"""Model augmentation: the physical effects ``kvark diagnose`` named, added to the nominal model.
+
+``augmentation.yaml`` (written by ``kvark diagnose``, DESIGN §6) lists effects with raw parameters
+θ such that, on contact-free motion, ``τ_m − τ_EL ≈ Σ Φ(q, q̇, q̈, τ_m) θ``. The improved model
+applies each effect where it physically acts:
+
+* ``payload``   a rigid body at the flange (10 inertial parameters, flange frame): inside M, C, g;
+* ``armature``  rotor inertia on the joint diagonal (pinocchio ``model.armature``): inside M;
+* ``joint_offset`` the encoder reads ``q + δ``: the model is evaluated at ``q − δ``;
+* friction, ``drive_gain``, ``torque_offset``, ``position_ripple``: a joint torque
+  ``τ_aug(q, q̇, τ_m) = Σ Φ θ`` the drive spends beyond the rigid body, so the improved model is
+  ``M q̈ + C q̇ + g + τ_aug = τ_m + τ_ext``.
+
+``joint_columns`` is the single definition of the torque effects' regressors: the diagnosis fits
+θ with it and the estimator evaluates ``τ_aug`` with it.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import yaml
+
+TANH_EPSILON = 0.02   # rad/s, default width of the smoothed sign(q̇) of dry friction
+TORQUE_EFFECTS = ("coulomb_friction", "viscous_friction", "stribeck_friction", "drive_gain", "torque_offset",
+                  "position_ripple")
+STRUCTURAL_EFFECTS = ("payload", "armature", "joint_offset")
+PARAMETERS_PER_JOINT = {"coulomb_friction": 1, "viscous_friction": 1, "stribeck_friction": 1, "drive_gain": 1,
+                        "torque_offset": 1, "position_ripple": 2, "armature": 1, "joint_offset": 1}
+REQUIRED_VARIANT = {"stribeck_friction": ("stribeck_velocity",), "position_ripple": ("cycles_per_rev",)}
+PAYLOAD_SIZE = 10
+
+
+class AugmentationError(ValueError):
+    """An augmentation file is unreadable or does not fit the configured robot."""
+
+
+def joint_columns(name: str, variant: Mapping[str, float], q: np.ndarray, qd: np.ndarray,
+                  tau_m: np.ndarray) -> list[np.ndarray]:
+    """Regressor columns of a torque effect on one joint's samples (any shape, broadcast).
+
+    Their θ-weighted sum is the effect's share of ``τ_m − τ_EL`` (N·m); θ is the physical
+    parameter (see ``kvark_ros.gap.effects`` for each effect's units and sign).
+    """
+    eps = variant.get("epsilon", TANH_EPSILON)
+    if name == "coulomb_friction":
+        return [np.tanh(qd / eps)]
+    if name == "viscous_friction":
+        return [qd]
+    if name == "stribeck_friction":
+        return [np.exp(-np.square(qd / variant["stribeck_velocity"])) * np.tanh(qd / eps)]
+    if name == "drive_gain":            # the drive applies g τ_m: gap (1 − g) τ_m, θ = 1 − g
+        return [tau_m]
+    if name == "torque_offset":         # the drive applies τ_m + o: gap −o
+        return [-np.ones_like(q)]
+    if name == "position_ripple":       # the drive applies a sin(k q) + b cos(k q)
+        k = variant["cycles_per_rev"]
+        return [-np.sin(k * q), -np.cos(k * q)]
+    raise ValueError(f"{name!r} is not a torque effect; torque effects: {TORQUE_EFFECTS}")
+
+
+@dataclass(frozen=True)
+class TorqueEffect:
+    """One torque effect on joints ``joints`` (int array) with parameters ``theta`` (len(joints), k)."""
+
+    name: str
+    joints: np.ndarray
+    variant: Mapping[str, float]
+    theta: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Augmentation:
+    """A parsed augmentation for an n-joint model.
+
+    payload: (10,) dynamic parameters ``[m, m c, I_origin]`` in the flange frame, or None;
+    armature: (n,) kg·m²; joint_offset: (n,) rad; torque_effects: the τ_aug terms;
+    text: the file's exact text (copied into model directories), sha256: its hash.
+    """
+
+    source: str
+    joint_names: tuple[str, ...]
+    effect_names: tuple[str, ...]
+    payload: np.ndarray | None
+    armature: np.ndarray
+    joint_offset: np.ndarray
+    torque_effects: tuple[TorqueEffect, ...]
+    text: str
+    sha256: str
+
+    def joint_torque(self, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> np.ndarray:
+        """``τ_aug(q, q̇, τ_m)`` (n,) N·m, q as measured."""
+        total = np.zeros(len(self.joint_names))
+        for effect in self.torque_effects:
+            j = effect.joints
+            columns = joint_columns(effect.name, effect.variant, q[j], qd[j], tau_m[j])
+            for c, column in enumerate(columns):
+                total[j] += column * effect.theta[:, c]
+        return total
+
+    def joint_torque_batch(self, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> np.ndarray:
+        """``τ_aug`` for samples (T, n) -> (T, n)."""
+        total = np.zeros(np.shape(q))
+        for effect in self.torque_effects:
+            j = effect.joints
+            columns = joint_columns(effect.name, effect.variant, q[:, j], qd[:, j], tau_m[:, j])
+            for c, column in enumerate(columns):
+                total[:, j] += column * effect.theta[:, c]
+        return total
+
+
+def _fail(source: str, problem: str) -> AugmentationError:
+    return AugmentationError(f"{source}: {problem}; write it with `kvark diagnose` or fix model_augmentation")
+
+
+def parse_augmentation(text: str, joint_names: Sequence[str], source: str = "augmentation") -> Augmentation:
+    """Validate the text of an ``augmentation.yaml`` against the configured joints."""
+    try:
+        document = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise _fail(source, "invalid YAML") from exc
+    if not isinstance(document, Mapping) or not isinstance(document.get("effects"), list):
+        raise _fail(source, "expected a mapping with an 'effects' list")
+    names = tuple(document.get("joint_names") or ())
+    if names != tuple(joint_names):
+        raise _fail(source, f"written for joints {list(names)}, the config has {list(joint_names)}")
+    n = len(names)
+    payload, armature, offset = None, np.zeros(n), np.zeros(n)
+    torque_effects, effect_names = [], []
+    for index, entry in enumerate(document["effects"]):
+        where = f"effect {index + 1}"
+        try:
+            name = str(entry["name"])
+            joints = np.array([int(j) for j in entry["joint_indices"]], dtype=int)
+            theta = np.asarray(entry["theta"], dtype=float)
+            variant = {str(k): float(v) for k, v in (entry.get("variant") or {}).items()}
+        except (KeyError, TypeError, ValueError) as exc:
+            raise _fail(source, f"{where} needs name, joint_indices, theta (numbers) ({exc})") from exc
+        if name not in TORQUE_EFFECTS + STRUCTURAL_EFFECTS:
+            raise _fail(source, f"{where}: unknown effect {name!r}")
+        if name in effect_names:
+            raise _fail(source, f"{where}: effect {name!r} listed twice")
+        if len(joints) == 0 or joints.min() < 0 or joints.max() >= n or len(set(joints.tolist())) != len(joints):
+            raise _fail(source, f"{where} ({name}): joint_indices must be distinct indices in 0..{n - 1}")
+        if not np.all(np.isfinite(theta)):
+            raise _fail(source, f"{where} ({name}): theta has NaN or Inf")
+        missing = [key for key in REQUIRED_VARIANT.get(name, ()) if key not in variant]
+        if missing:
+            raise _fail(source, f"{where} ({name}): variant needs {missing}")
+        size = PAYLOAD_SIZE if name == "payload" else PARAMETERS_PER_JOINT[name] * len(joints)
+        if theta.size != size:
+            raise _fail(source, f"{where} ({name}): theta has {theta.size} values, expected {size}")
+        effect_names.append(name)
+        if name == "payload":
+            if theta[0] <= 0.0:
+                raise _fail(source, f"{where} (payload): mass theta[0] must be positive")
+            payload = theta
+        elif name == "armature":
+            if theta.min() < 0.0:
+                raise _fail(source, f"{where} (armature): values must be ≥ 0 kg·m²")
+            armature[joints] = theta
+        elif name == "joint_offset":
+            offset[joints] = theta
+        else:
+            k = PARAMETERS_PER_JOINT[name]
+            torque_effects.append(TorqueEffect(name, joints, variant, theta.reshape(len(joints), k)))
+    return Augmentation(source, names, tuple(effect_names), payload, armature, offset, tuple(torque_effects),
+                        text, hashlib.sha256(text.encode()).hexdigest())
+
+
+def load_augmentation(path: str | os.PathLike, joint_names: Sequence[str]) -> Augmentation:
+    """Read and validate an ``augmentation.yaml``."""
+    try:
+        text = Path(path).read_text()
+    except FileNotFoundError as exc:
+        raise _fail(str(path), "file not found") from exc
+    except (OSError, UnicodeDecodeError) as exc:
+        raise _fail(str(path), "cannot read the file (not text)") from exc
+    return parse_augmentation(text, joint_names, str(path))

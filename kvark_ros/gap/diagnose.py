@@ -7,13 +7,20 @@
    (effect, joint set) candidate is fitted on the training part by bounded least squares
    (positive friction, armature and payload mass), the one that lowers the held-out gap most is
    accepted when the BIC improves and the held-out gap of the affected joints drops by at least
-   ``MIN_REDUCTION``; the search stops when no candidate is accepted;
+   ``MIN_REDUCTION``; the search stops when no candidate is accepted. A backward pass then
+   refits without each accepted effect in turn and drops the one whose removal costs least while
+   removing it does not worsen the BIC or does not worsen the held-out gap of any joint by
+   ``MIN_REDUCTION`` and ``MIN_ABS_REDUCTION`` (an effect accepted early can be made redundant
+   by later ones, and a small effect can soak up what a later one explains); repeated until every
+   remaining effect is needed. Each remaining effect's reported reduction is the held-out gap of
+   all effects but that one against all of them;
 3. writes ``diagnosis.json``, ``augmentation.yaml`` (the accepted effects, loadable by
    ``effects.augmentation_gap``), ``report.md`` and plots.
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import time
 from dataclasses import dataclass
@@ -129,6 +136,8 @@ def _screen(name: str, variant: dict, fitter: _Fitter, terms: Sequence[Term], r_
     added on that joint alone and everything is refitted."""
     if name == "payload":
         return Term(name, tuple(range(n)), variant)
+    if name not in PER_JOINT:
+        return _screen_coupled(name, variant, fitter, terms, n)
     chosen = []
     held_rms = _rmse(r_he)
     w = fitter.w
@@ -145,15 +154,102 @@ def _screen(name: str, variant: dict, fitter: _Fitter, terms: Sequence[Term], r_
     return Term(name, tuple(chosen), variant) if chosen else None
 
 
+def _screen_coupled(name: str, variant: dict, fitter: _Fitter, terms: Sequence[Term], n: int) -> Term | None:
+    """Candidate joint set of a coupled effect (joint_offset): backward elimination from every joint
+    whose regressor is not identically zero.
+
+    A joint's parameter of a coupled effect acts on the gaps of other joints, and those joints
+    interact (the UR5's parallel shoulder, elbow and wrist axes see sums of offsets), so an offset
+    fitted on one joint alone can take the wrong sign to suit the small, heavily weighted gaps of
+    the wrist joints. Starting from all of them, the joint whose removal raises the weighted
+    held-out gap least is dropped while no joint's held-out gap worsens by ``MIN_REDUCTION`` and
+    ``MIN_ABS_REDUCTION`` without it.
+    """
+    probe = fitter.design(Term(name, tuple(range(n)), variant))[0] * fitter.w[None, :, None]
+    size = np.sqrt(np.mean(np.square(probe), axis=(0, 1)))
+    chosen = [j for j in range(n) if size[j] > 1e-9 * max(float(size.max()), 1e-300)]
+    if not chosen:
+        return None
+    after = _rmse(fitter.fit([*terms, Term(name, tuple(chosen), variant)])[3])
+    while chosen:
+        trials = []
+        for j in chosen:
+            rest = [i for i in chosen if i != j]
+            without = _rmse(fitter.fit([*terms, Term(name, tuple(rest), variant)])[3]) if rest else None
+            if without is None:
+                without = _rmse(fitter.fit(list(terms))[3])
+            if len(_affected(without, after)) == 0:
+                trials.append((float(np.mean(np.square(without * fitter.w))), j, without))
+        if not trials:
+            break
+        _, j, after = min(trials, key=lambda item: item[0])
+        chosen.remove(j)
+    return Term(name, tuple(chosen), variant) if chosen else None
+
+
 def _affected(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     """Joints whose held-out gap drops by ≥ MIN_REDUCTION (relative) and MIN_ABS_REDUCTION."""
     drop = before - after
     return np.flatnonzero((drop >= MIN_REDUCTION * before) & (drop >= MIN_ABS_REDUCTION))
 
 
+def _prune(fitter: _Fitter, terms: list[Term], theta: np.ndarray, cov: np.ndarray | None, r_tr: np.ndarray,
+           r_he: np.ndarray, bic: float, log: Callable[[str], None]) -> tuple:
+    """Backward pass over the accepted terms (module docstring, step 2), then every remaining
+    term's contribution: (terms, θ, covariance, train and held-out residuals, history)."""
+    terms = list(terms)
+    while len(terms) > 1:
+        after = _rmse(r_he)
+        k = sum(t.size for t in terms)
+        drops = []
+        for i, term in enumerate(terms):
+            rest = terms[:i] + terms[i + 1:]
+            fit = fitter.fit(rest)
+            without = _rmse(fit[3])
+            rest_bic = fitter.bic(fit[2], k - term.size)
+            if rest_bic <= bic or len(_affected(without, after)) == 0:
+                drops.append((float(np.mean(np.square(fit[3] * fitter.w))), i, fit, rest_bic, without))
+        if not drops:
+            break
+        _, i, fit, rest_bic, without = min(drops, key=lambda item: item[0])
+        log(f"[diagnose] dropped {terms[i].name} {list(terms[i].joints)} (backward pass): ΔBIC "
+            f"{rest_bic - bic:+.1f}, held-out gap {np.round(after, 4).tolist()} → {np.round(without, 4).tolist()}")
+        del terms[i]
+        theta, cov, r_tr, r_he = fit
+        bic = rest_bic
+    after = _rmse(r_he)
+    history = []
+    for i, term in enumerate(terms):
+        before = _rmse(fitter.fit(terms[:i] + terms[i + 1:])[3])
+        joints = _affected(before, after)
+        red = (1.0 - np.sqrt(np.mean(np.square(after[joints]))) / np.sqrt(np.mean(np.square(before[joints])))
+               if len(joints) else 0.0)
+        history.append({"affected": joints.tolist(), "gap_reduction": float(red),
+                        "held_out_rmse_before": before[joints].tolist(),
+                        "held_out_rmse_after": after[joints].tolist()})
+    return terms, theta, cov, r_tr, r_he, history
+
+
+def _single_threaded_blas() -> contextlib.AbstractContextManager:
+    """BLAS limited to one thread: the selection solves hundreds of small least-squares problems
+    (thousands of rows × tens of columns), which threads do not speed up; on a busy machine their
+    synchronisation made each QR 10-100× slower."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:      # pragma: no cover - threadpoolctl comes with scikit-learn
+        return contextlib.nullcontext()
+    return threadpool_limits(1)
+
+
 def diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float = HOLDOUT,
              effects: Sequence[str] = EFFECT_NAMES, log: Callable[[str], None] = print) -> Diagnosis:
     """Greedy selection of named effects explaining the gap (see module docstring)."""
+    with _single_threaded_blas():
+        return _diagnose(robot, segments, holdout, effects, log)
+
+
+def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float,
+              effects: Sequence[str], log: Callable[[str], None]) -> Diagnosis:
     if not 0.05 <= holdout <= 0.9:
         raise ValueError(f"holdout must be in [0.05, 0.9], got {holdout}")
     unknown = sorted(set(effects) - set(EFFECT_NAMES))
@@ -220,6 +316,7 @@ def diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: fl
             break
         if not accepted:
             break
+    terms, theta, cov, r_tr, r_he, history = _prune(fitter, terms, theta, cov, r_tr, r_he, bic, log)
     gap_after = _rmse(r_he)
     result_effects, thetas = [], []
     pos = 0
@@ -355,7 +452,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    robot = RobotModel.from_config(config)
+    robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
     segments = load_recordings(config, args.bags, "diagnose")
     log = lambda line: print(line, flush=True)   # noqa: E731
     diag = diagnose(robot, segments, args.holdout, log=log)

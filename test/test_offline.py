@@ -305,6 +305,33 @@ def test_cli_replay_observer_the_model_cannot_build_is_a_one_line_user_error(bag
     assert observer in err
 
 
+def test_diagnose_then_train_on_the_augmented_model_then_replay(config, bags, cli_model, tmp_path, capsys):
+    """`make demo`'s chain (issue 6 scope 2): the augmentation travels with the model, its residuals
+    are relative to the augmented model, and the oracle (nominal model + true friction) refuses it."""
+    diagnosis, model = tmp_path / "diagnosis", tmp_path / "model"
+    assert main(["diagnose", "--config", str(CONFIG), "--bags", str(bags.mcap), str(bags.sqlite),
+                 "--out", str(diagnosis), "--no-plots"]) == 0
+    named = [effect["name"] for effect in json.loads((diagnosis / "diagnosis.json").read_text())["effects"]]
+    assert "coulomb_friction" in named or "viscous_friction" in named    # the default plant's friction
+    assert main(["train", "--config", str(CONFIG), "--bags", str(bags.mcap), str(bags.sqlite), "--out", str(model),
+                 "--augmentation", str(diagnosis / "augmentation.yaml"), "--no-baselines", "--no-plots"]) == 0
+    assert (model / "augmentation.yaml").read_text() == (diagnosis / "augmentation.yaml").read_text()
+    trained, nominal = load_model(model, config.joint_names), load_model(cli_model, config.joint_names)
+    assert trained.info["augmentation"]["effects"] == named
+    # friction moved from the learned residual into the model: the KMP's residual is smaller
+    assert np.mean(np.abs(trained.residual.predict(np.full(N, 0.5))[0])) < \
+        np.mean(np.abs(nominal.residual.predict(np.full(N, 0.5))[0]))
+    plant = str(ROOT / "kvark_ros/sim/plants/panda_default.yaml")
+    assert main(["replay", "--config", str(CONFIG), "--model", str(model), "--bag", str(bags.payload),
+                 "--observers", "kvark,kf", "--plant", plant, "--out", str(tmp_path / "replay"), "--no-bag"]) == 0
+    capsys.readouterr()
+    assert main(["replay", "--config", str(CONFIG), "--model", str(model), "--bag", str(bags.payload),
+                 "--observers", "oracle", "--plant", plant, "--out", str(tmp_path / "oracle"), "--no-bag"]) == 1
+    assert "augmented" in capsys.readouterr().err
+    observers = json.loads((tmp_path / "replay" / "metrics.json").read_text())["observers"]
+    assert observers["kvark"]["joint_rmse_mean"] < 1.0
+
+
 # --------------------------------------------------------------------------- 4. ground truth
 
 def test_ground_truth_is_the_true_torque_when_the_bag_has_it(config, robot, bags):

@@ -3,7 +3,9 @@
 Simulates contact-free training bags (optimised excitation) and test bags (payload, contact,
 collision), trains the residual models, replays every observer (the oracle gets the plant
 file) and writes ``results.json`` (``{"scenarios": {NAME: <metrics.json>}}``) and ``report.md``
-with tables in the spirit of paper v2 Tables III, IV, V, VII, VIII and IX.
+with tables in the spirit of paper v2 Tables III, IV, V, VII, VIII and IX. With ``--augment`` it
+also runs the model-gap workflow (``kvark diagnose`` on the training bags), trains on the augmented
+model and replays ``AUGMENTED_OBSERVERS`` again: ``results.json`` gains ``"augmented"``.
 """
 from __future__ import annotations
 
@@ -14,7 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from kvark_ros.core.config import OBSERVER_NAMES, default_config_path, load_config
+from kvark_ros.core.augmentation import load_augmentation
+from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, default_config_path, load_config
 from kvark_ros.core.model_store import save_model
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.io.alignment import estimator_inputs
@@ -25,6 +28,7 @@ from kvark_ros.tools.train import train_model
 
 TEST_SCENARIOS = ("payload", "contact", "collision")
 ABLATIONS = ("kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "kvark")
+AUGMENTED_OBSERVERS = ("kvark", "kf", "momentum")
 PAPER_RATIOS = {"gpadkf": 0.59, "gmr_gp": 0.66, "nnadkf": 0.75}   # v2 Table IX, external ground truth
 
 
@@ -41,8 +45,10 @@ FULL = BenchmarkPlan(train_seeds=(11, 12, 13, 14, 15), train_duration=20.0, test
 QUICK = BenchmarkPlan(train_seeds=(11, 12), train_duration=10.0, test_duration=8.0)
 
 
-def simulate_bags(robot: str, plan: BenchmarkPlan, folder: Path, seed: int, log) -> tuple[list[Path], dict]:
-    """Training and test bags under ``folder`` (reused when already there)."""
+def simulate_bags(robot: str, plan: BenchmarkPlan, folder: Path, seed: int, log,
+                  plant: Path | None = None) -> tuple[list[Path], dict]:
+    """Training and test bags under ``folder`` (reused when already there); ``plant``: a plant file
+    instead of the robot's default."""
     from kvark_ros.sim.scenarios import simulate
     folder.mkdir(parents=True, exist_ok=True)
     jobs = [(f"train_excitation_{s}", "excitation", s + seed, plan.train_duration) for s in plan.train_seeds]
@@ -52,7 +58,7 @@ def simulate_bags(robot: str, plan: BenchmarkPlan, folder: Path, seed: int, log)
         path = folder / label
         if not path.exists():
             started = time.perf_counter()
-            write_run(path, simulate(robot, scenario, scenario_seed, duration))
+            write_run(path, simulate(robot, scenario, scenario_seed, duration, plant))
             log(f"[benchmark] simulated {label} ({duration:g} s) in {time.perf_counter() - started:.1f} s")
         paths[label] = path
     train = [paths[label] for label, scenario, *_ in jobs if scenario == "excitation"]
@@ -111,9 +117,28 @@ def write_report(out: Path, results: Mapping[str, Any], training: Mapping[str, A
         cells = [f"{obs['kvark']['joint_rmse_mean'] / obs[b]['joint_rmse_mean']:.2f}" if b in obs and "kvark" in obs
                  else "–" for b in PAPER_RATIOS]
         text.append(f"| {name} | " + " | ".join(cells) + " |")
+    if "augmented" in results:
+        text += ["", augmentation_section(results)]
     text += ["", "## Acceptance checks", ""] + acceptance(scenarios)
     text += ["", "Per-scenario reports and plots: " + ", ".join(f"[{n}]({n}/report.md)" for n in scenarios)]
     (out / "report.md").write_text("\n".join(text) + "\n")
+
+
+def augmentation_section(results: Mapping[str, Any]) -> str:
+    """Joint RMSE on the nominal and on the augmented model (issue 6: the augmentation's effect)."""
+    augmented = results["augmented"]
+    lines = ["## Model augmentation (kvark diagnose on the training bags, DESIGN §6)", "",
+             f"Effects found: {', '.join(augmented['effects']) or 'none'}; held-out gap "
+             f"{augmented['gap_before']:.4f} → {augmented['gap_after']:.4f} N·m.", "",
+             "| scenario | observer | nominal model | augmented model | change |", "|---|---|---|---|---|"]
+    for name, metrics in augmented["scenarios"].items():
+        for observer, values in metrics["observers"].items():
+            before = results["scenarios"][name]["observers"].get(observer, {}).get("joint_rmse_mean")
+            after = values["joint_rmse_mean"]
+            change = f"{after / before - 1:+.1%}" if before else "–"
+            lines.append(f"| {name} | {observer} | {before if before is None else f'{before:.4f}'} | "
+                         f"{after:.4f} | {change} |")
+    return "\n".join(lines)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -127,6 +152,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--quick", action="store_true", help="less data: finishes in a few minutes")
     parser.add_argument("--seed", type=int, default=0, help="offset of every simulation seed (default 0)")
     parser.add_argument("--observers", default="all", help="comma-separated observers or 'all' (default)")
+    parser.add_argument("--plant", help="simulate this plant file instead of the robot's default (delete "
+                                        "DIR/bags when changing it: bags are reused)")
+    parser.add_argument("--augment", action="store_true",
+                        help=f"also diagnose the training bags, train on the augmented model and replay "
+                             f"{', '.join(AUGMENTED_OBSERVERS)} with it (report section 'Model augmentation')")
     parser.set_defaults(run=run)
 
 
@@ -140,8 +170,9 @@ def run(args: argparse.Namespace) -> int:
 
     config = load_config(default_config_path(args.robot))
     from kvark_ros.sim.plant import default_plant_path, load_plant
-    plant = load_plant(default_plant_path(args.robot), config.n_joints)
-    train_bags, test_bags = simulate_bags(args.robot, plan, out / "bags", args.seed, log)
+    plant_path = Path(args.plant) if args.plant else default_plant_path(args.robot)
+    plant = load_plant(plant_path, config.n_joints)
+    train_bags, test_bags = simulate_bags(args.robot, plan, out / "bags", args.seed, log, plant_path)
     robot = RobotModel.from_config(config)
     segments = [estimator_inputs(read_run(bag, config.joint_names), config.command_max_age, path=str(bag))
                 for bag in train_bags]
@@ -154,12 +185,37 @@ def run(args: argparse.Namespace) -> int:
         log(f"[benchmark] replaying {scenario}")
         results["scenarios"][scenario] = replay(config, trained, bag, out / scenario, observers, plant=plant,
                                                 write_bag=False, log=log)
+    if args.augment:
+        results["augmented"] = augmented_run(config, segments, test_bags, out, args.seed, log)
     (out / "results.json").write_text(json.dumps(results, indent=2))
     write_report(out, results, trained.info, args.robot, plan, time.perf_counter() - started)
     for line in acceptance(results["scenarios"]):
         log(line)
+    if args.augment:
+        log(augmentation_section(results))
     log(f"[benchmark] wrote {out}/results.json and {out}/report.md in {(time.perf_counter() - started) / 60:.1f} min")
     return 0
+
+
+def augmented_run(config: EstimatorConfig, segments: list, test_bags: Mapping[str, Path], out: Path, seed: int,
+                  log) -> dict[str, Any]:
+    """Diagnose the training recordings, train on the augmented model, replay the test bags with it."""
+    from kvark_ros.gap.diagnose import diagnose, write_outputs
+    nominal = RobotModel.from_config(config)
+    diagnosis = diagnose(nominal, segments, log=log)
+    write_outputs(diagnosis, nominal, out / "diagnosis", config.robot, log=log)
+    augmentation = load_augmentation(out / "diagnosis" / "augmentation.yaml", config.joint_names)
+    trained = train_model(RobotModel.from_config(config, augmentation), config.robot, segments, baselines=False,
+                          seed=seed, log=log)
+    save_model(out / "model_augmented", trained)
+    scenarios = {}
+    for scenario, bag in test_bags.items():
+        log(f"[benchmark] replaying {scenario} on the augmented model")
+        scenarios[scenario] = replay(config, trained, bag, out / "augmented" / scenario, list(AUGMENTED_OBSERVERS),
+                                     write_bag=False, log=log)
+    return {"effects": list(augmentation.effect_names),
+            "gap_before": diagnosis.result["gap_before"]["joint_rmse_mean"],
+            "gap_after": diagnosis.result["gap_after"]["joint_rmse_mean"], "scenarios": scenarios}
 
 
 def headline(results: Mapping[str, Any], observers: tuple[str, ...] = ("kvark", "kf", "momentum", "oracle")) -> str:

@@ -54,7 +54,7 @@ def test_virtual_measurement_sign_gives_torque_acting_on_the_robot(panda_config)
     assert np.allclose(x, tau_ext, atol=1e-3)
 
 
-FORMS = [("momentum", "smoothed"), ("momentum", "paper"), ("difference", "paper"), ("difference", "huang")]
+FORMS = [("momentum", "smoothed"), ("momentum", "paper"), ("momentum", "window"), ("difference", "paper"), ("difference", "huang")]
 
 
 @pytest.mark.parametrize("name, measurement, vb_variant",
@@ -84,7 +84,8 @@ def test_observers_converge_to_a_step_external_torque(panda, panda_config, panda
 @pytest.mark.parametrize("measurement, vb_variant, steps", [("difference", "paper", 100_000),
                                                            ("difference", "huang", 20_000),
                                                            ("momentum", "smoothed", 100_000),
-                                                           ("momentum", "paper", 20_000)])
+                                                           ("momentum", "paper", 20_000),
+                                                           ("momentum", "window", 20_000)])
 def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_config, rng, measurement, vb_variant,
                                                                      steps):
     from kvark_ros.core.observers.kvark_momentum import KVARKMomentumFilter
@@ -174,3 +175,94 @@ def test_smoothed_vb_statistic_equals_the_matrix_rts_smoother(panda_config, rng)
         cross = P_post @ G.T
         expected = w_hat ** 2 + P_post[1, 1] + P_prev_smoothed[1, 1] - 2.0 * cross[1, 1]
         assert np.isclose(got[0], max(expected, 0.0), rtol=1e-8, atol=1e-12)
+
+
+def _window_filter(panda_config, n: int, q0: float, R: float, variant: str = "window"):
+    from kvark_ros.core.observers.kvark_momentum import KVARKMomentumFilter
+    from kvark_ros.core.observers.momentum_observers import MomentumNoise
+    tuning_ = FilterTuning(np.full(n, 5.0), np.full(n, 0.05), np.full(n, 0.02), np.full(n, 1e-4))
+    noise = MomentumNoise(np.full(n, R), np.full(n, q0), np.full(n, 1e-8))
+    config = replace(panda_config, measurement="momentum", vb_variant=variant, vb_window=25, vb_prior_dof=1.0,
+                     vb_forgetting=0.99)
+    return KVARKMomentumFilter("kvark", flat_residual(n, 1e-4), tuning_, noise, config)
+
+
+@pytest.mark.parametrize("variant", ["window", "smoothed"])
+def test_window_vb_process_noise_grows_after_a_step_and_returns_to_the_prior(panda_config, rng, variant):
+    """A step in τ_ext at 2 s: the windowed VB statistic raises Σ_d by orders of magnitude within
+    0.1 s and brings it back to the prior once τ_ext is constant again; the lag-one statistic
+    (smoothed) cannot see one step's increment through the momentum and leaves Σ_d at the prior."""
+    n, h, q0, R = 3, 0.002, 0.05, 1e-6
+    observer = _window_filter(panda_config, n, q0, R, variant)
+    step = np.array([3.0, -2.0, 1.0])
+    p_true, p_prev, u = np.zeros(n), np.zeros(n), np.zeros(n)
+    ratio = []
+    for k in range(4000):
+        p_true = p_true + h * (u + (step if k * h >= 2.0 else 0.0))
+        p = p_true + rng.normal(0.0, np.sqrt(R), n)
+        tau, _ = observer.step(h, np.zeros(n), p, p_prev, u)
+        p_prev = p
+        ratio.append(observer.Sigma_d / (q0 * h))
+    ratio = np.array(ratio)
+    assert np.allclose(tau, step, atol=0.05)
+    assert np.all(ratio[990] < 1.5)                            # quiet: at or below the prior
+    if variant == "window":
+        assert np.all(ratio[1000:1050].max(axis=0) > 10.0)     # Σ_d ≥ 10 Σ_d0 within 0.1 s of the step
+        assert np.all(ratio[-1] < 1.5)                         # back at the prior 6 s later
+    else:
+        assert np.all(ratio[1000:1050].max(axis=0) < 1.5)
+
+
+def test_window_vb_learns_the_density_of_a_random_walk(panda_config, rng):
+    """τ_ext a random walk 100× faster than the prior: the learned density is the true one, shrunk
+    toward the prior by its weight (ν_0 = 1 against ~4 forgotten windows: about 0.8 of the truth)."""
+    n, h, q0, R = 3, 0.002, 0.05, 1e-6
+    observer = _window_filter(panda_config, n, q0, R)
+    q_true = 100.0 * q0
+    p_true, p_prev, u, tau = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    learned = []
+    for k in range(5000):
+        tau = tau + rng.normal(0.0, np.sqrt(q_true * h), n)
+        p_true = p_true + h * (u + tau)
+        p = p_true + rng.normal(0.0, np.sqrt(R), n)
+        observer.step(h, np.zeros(n), p, p_prev, u)
+        p_prev = p
+        if k >= 1000:
+            learned.append(observer.win_q)
+    ratio = np.mean(learned, axis=0) / q_true
+    assert np.all((ratio > 0.6) & (ratio < 1.0))
+
+
+def test_window_vb_state_covariances_match_the_augmented_matrix_filter(panda_config, rng):
+    """The snapshot bookkeeping (Cov(p, z), Cov(τ, z), Var z) equals a 3-state KF on [p, τ, z]."""
+    h, q0, R = 0.002, 0.05, 1e-6
+    observer = _window_filter(panda_config, 1, q0, R)
+    from kvark_ros.core.observers.kvark_filter import Variant
+    observer.variant = Variant(heteroscedastic=False, ewma=False, nis=False, vb=True)   # fixed R and Σ_*
+    F = np.array([[1.0, h, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    x, P = None, None
+    p_prev, u = np.zeros(1), np.zeros(1)
+    for k in range(4):                                      # stride 5: no snapshot is retaken in 4 steps
+        p = p_prev + rng.normal(0.0, 1e-3, 1)
+        observer.step(h, np.zeros(1), p, p_prev, u)
+        if k == 0:                                          # after the first step: z_0 = τ̂ with Var/Cov copied
+            x = np.array([observer.p_hat[0], observer.tau[0], observer.win_z[0, 0]])
+            P = np.array([[observer.a[0], observer.b[0], observer.win_pz[0, 0]],
+                          [observer.b[0], observer.c[0], observer.win_tz[0, 0]],
+                          [observer.win_pz[0, 0], observer.win_tz[0, 0], observer.win_zz[0, 0]]])
+        else:
+            sd = observer.Sigma_d[0]
+            Q = np.zeros((3, 3))
+            Q[:2, :2] = sd * np.array([[h * h / 3.0, h / 2.0], [h / 2.0, 1.0]])
+            Q[0, 0] += observer.q_p[0] * h + h * h * 1e-4
+            P = F @ P @ F.T + Q
+            x = F @ x
+            x[0] += h * u[0]
+            S = P[0, 0] + R
+            K = P[:, 0] / S
+            x = x + K * (p[0] - x[0])
+            P = P - np.outer(K, P[0])
+            assert np.allclose([observer.p_hat[0], observer.tau[0], observer.win_z[0, 0]], x, rtol=1e-6, atol=1e-12)
+            assert np.allclose([observer.win_pz[0, 0], observer.win_tz[0, 0], observer.win_zz[0, 0]],
+                               [P[0, 2], P[1, 2], P[2, 2]], rtol=1e-6, atol=1e-15)
+        p_prev = p

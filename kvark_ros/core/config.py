@@ -22,7 +22,7 @@ NODE_NAME = "kvark_estimator"
 OBSERVER_NAMES = ("kvark", "kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "gmr_gp", "gpadkf", "nnadkf",
                   "momentum", "kfmo", "sh_akfmo", "vbkfmo_q", "eso", "oracle")
 WRENCH_FRAMES = ("base", "end_effector")
-VB_VARIANTS = ("paper", "huang", "smoothed")
+VB_VARIANTS = ("paper", "huang", "smoothed", "window")
 MEASUREMENTS = ("momentum", "difference")
 
 
@@ -49,6 +49,8 @@ class EstimatorConfig:
     vb_iterations: int
     vb_forgetting: float
     vb_variant: str
+    vb_window: int
+    vb_prior_dof: float
     measurement: str
     huang_tau: float
     ewma_rate: float
@@ -119,6 +121,8 @@ _SCHEMA: dict[str, tuple[Callable, str, Any]] = {
     "filter.vb_iterations": (*_integer(1, 50), 1),
     "filter.vb_forgetting": (*_number(0.0, 1.0, low_open=True), 0.99),
     "filter.vb_variant": (*_choice(VB_VARIANTS), "smoothed"),
+    "filter.vb_window": (*_integer(5, 5000), 25),
+    "filter.vb_prior_dof": (*_number(0.0, 1e6, low_open=True), 1.0),
     "filter.measurement": (*_choice(MEASUREMENTS), "momentum"),
     "filter.huang_tau": (*_number(0.0, 1e6, low_open=True), 300.0),
     "filter.ewma_rate": (*_number(0.0, 1.0, low_open=True), 0.01),
@@ -166,9 +170,9 @@ def config_from_parameters(parameters: Mapping[str, Any], source: str = "configu
         values[key] = value
     if values["filter.vb_variant"] == "huang" and values["filter.measurement"] == "momentum":
         raise ConfigError(f"{source}: key 'filter.vb_variant' huang is implemented for "
-                          "filter.measurement: difference only; allowed with momentum: paper, smoothed")
-    if values["filter.vb_variant"] == "smoothed" and values["filter.measurement"] == "difference":
-        raise ConfigError(f"{source}: key 'filter.vb_variant' smoothed is implemented for "
+                          "filter.measurement: difference only; allowed with momentum: paper, smoothed, window")
+    if values["filter.vb_variant"] in ("smoothed", "window") and values["filter.measurement"] == "difference":
+        raise ConfigError(f"{source}: key 'filter.vb_variant' {values['filter.vb_variant']} is implemented for "
                           "filter.measurement: momentum only; allowed with difference: paper, huang")
     mass = values["robot_model.payload.mass"]
     payload = None if mass == 0.0 else Payload(
@@ -189,6 +193,8 @@ def config_from_parameters(parameters: Mapping[str, Any], source: str = "configu
         vb_iterations=values["filter.vb_iterations"],
         vb_forgetting=values["filter.vb_forgetting"],
         vb_variant=values["filter.vb_variant"],
+        vb_window=values["filter.vb_window"],
+        vb_prior_dof=values["filter.vb_prior_dof"],
         measurement=values["filter.measurement"],
         huang_tau=values["filter.huang_tau"],
         ewma_rate=values["filter.ewma_rate"],

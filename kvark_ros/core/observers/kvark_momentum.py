@@ -30,6 +30,8 @@ from kvark_ros.core.observers.kvark_filter import NIS_SCALE_BOUNDS, VARIANTS
 from kvark_ros.core.observers.momentum_observers import KFMomentumObserver, MomentumNoise, joseph_update
 
 R_FLOOR = 1e-2          # adaptive R never falls below this fraction of its training value
+WINDOW_SNAPSHOTS = 5    # window VB: staggered windows, one closing every vb_window / 5 samples
+WINDOW_MAX_RATIO = 1e4  # window VB: Σ_d never exceeds this multiple of the prior Σ_d0
 
 
 class KVARKMomentumFilter(KFMomentumObserver):
@@ -65,6 +67,13 @@ class KVARKMomentumFilter(KFMomentumObserver):
         self.Sigma_d: np.ndarray | None = None                          # VB: Σ_d,k−1 per joint, N²·m²
         self.vb_dof = np.zeros(self.n)                                  # VB: λ_{k−1}
         self.vb_scale = np.zeros(self.n)                                # VB: Υ_{k−1}
+        self.win_z: np.ndarray | None = None                            # window VB (_window_update)
+        self.win_zz = self.win_pz = self.win_tz = None
+        self.win_age = np.zeros(WINDOW_SNAPSHOTS)
+        self.win_count = 0
+        self.win_q = self.q_tau.copy()
+        self.win_scale = np.zeros(self.n)
+        self.win_dof = 0.0
 
     def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,
              u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -86,6 +95,8 @@ class KVARKMomentumFilter(KFMomentumObserver):
             sigma_d = sigma_d * self.nis_mean                           # A4: Σ_d = α Σ_d0
         if not variant.vb:
             self._update(p_pred, tau_pred, a_f, b_f, c_f, nu, R, sigma_d, dt)
+        elif config.vb_variant == "window":
+            self._window_update(p_pred, tau_pred, a_f, b_f, c_f, nu, R, dt)
         else:
             self._vb_update(p_pred, tau_pred, a_f, b_f, c_f, nu, R, sigma_d, dt)
         if variant.ewma:
@@ -146,3 +157,67 @@ class KVARKMomentumFilter(KFMomentumObserver):
         s, k2 = self._last_s, self._last_k2
         w_hat = (k2 - r / s) * nu
         return np.maximum(w_hat * w_hat + self.c - c0 - r * r / s + 2.0 * k2 * r, 0.0)
+
+    def _window_update(self, p_pred, tau_pred, a, b, c, nu, R, h) -> None:
+        """VB-IW on Σ_d per joint from the smoothed change of τ_ext over a window of L samples.
+
+        Why a window. One momentum sample says almost nothing about one step's increment
+        τ_k − τ_{k−1} (its information is ~h² Σ_d / R ≈ 1e-4 on the Panda), so the lag-one
+        statistic (``smoothed``) returns the prior and Σ_d never moves. Over L samples the
+        random walk (eq. 32) gives ``E[(τ_k − τ_{k−L})²] = L Σ_d``, which the data resolve for
+        L of a few tens of samples. The filter carries S = WINDOW_SNAPSHOTS snapshots z_j of τ_ext
+        (z_j = τ_{k_j}, no dynamics, not measured) in its state, so the joint posterior of
+        (τ_k, z_j) given y_1:k, cross covariance included, comes from the ordinary update; the
+        (p, τ) estimate is unchanged by them. A snapshot taken t_j seconds ago gives the density
+        statistic ``s_j = ((τ̂_k − ẑ_j)² + P_ττ + P_zz − 2 P_τz) / t_j`` (N²·m²/s). The IW
+        posterior (eqs. 36-39, n = 1 per joint) with prior mean q_0 (training, Σ_d0 = q_0 h) and
+        dof ν_0 (``filter.vb_prior_dof``), forgetting ρ per sample (``filter.vb_forgetting``)
+        applied to the data part only, so that Σ_d returns to the prior:
+
+            λ_k = ν_0 + 2 + ρ^m (λ_{k−m} − ν_0 − 2) + 1/S          (eq. 37; windows overlap S-fold)
+            Υ_k = ν_0 q_0 + ρ^m (Υ_{k−m} − ν_0 q_0) + s_j / S      (eq. 38 with the windowed statistic)
+            Σ_d,k = h Υ_k / (λ_k − 2)                               (eq. 39), at most WINDOW_MAX_RATIO Σ_d0
+
+        with m = L / S samples between closing windows. ``filter.vb_iterations`` does not apply:
+        the statistic comes from samples already filtered.
+
+        State (arrays (n,) or (n, S)): ``win_z`` ẑ_j N·m, ``win_zz`` Var z_j N²·m², ``win_pz`` and
+        ``win_tz`` Cov(p, z_j) N·m²·s and Cov(τ, z_j) N²·m², ``win_age`` (S,) seconds since
+        snapshot j, ``win_q`` the current density estimate N²·m²/s, ``win_scale``/``win_dof`` the
+        forgotten data parts of Υ and λ.
+        """
+        snapshots = WINDOW_SNAPSHOTS
+        stride = max(self.config.vb_window // snapshots, 1)
+        q0 = self.q_tau                                                 # prior density, N²·m²/s
+        if self.win_z is None:                                          # all snapshots start at τ̂_0
+            ones = np.ones((self.n, snapshots))
+            self.win_z, self.win_zz = ones * self.tau[:, None], ones * self.c[:, None]
+            self.win_pz, self.win_tz = ones * self.b[:, None], ones * self.c[:, None]
+            self.win_q = q0.copy()
+        pz = self.win_pz + h * self.win_tz                              # Cov(p⁻, z) = (F P)_pz
+        tz = self.win_tz
+        self._update(p_pred, tau_pred, a, b, c, nu, R, self.win_q * h, h)   # eqs. 42-45 on (p, τ)
+        s = self._last_s[:, None]
+        gain_z = pz / s                                                 # K for z: Cov(z, p⁻) / S
+        self.win_z = self.win_z + gain_z * nu[:, None]
+        self.win_zz = self.win_zz - pz * gain_z                         # P_zz − Cov(z, p⁻)² / S
+        k1 = (a + self._last_q[0]) / self._last_s
+        self.win_tz = tz - self._last_k2[:, None] * pz                  # Cov(x⁺, z) = Cov(x⁻, z) − K Cov(p⁻, z)
+        self.win_pz = pz - k1[:, None] * pz
+        self.win_age = self.win_age + h
+        self.win_count += 1
+        if self.win_count % stride == 0:
+            j = (self.win_count // stride) % snapshots
+            if self.win_count >= stride * snapshots:                    # snapshot j spans a whole window
+                delta = self.tau - self.win_z[:, j]
+                stat = (delta * delta + self.c + self.win_zz[:, j] - 2.0 * self.win_tz[:, j]) / self.win_age[j]
+                forget = self.config.vb_forgetting ** stride
+                self.win_scale = forget * self.win_scale + np.maximum(stat, 0.0) / snapshots   # eq. 38
+                self.win_dof = forget * self.win_dof + 1.0 / snapshots                         # eq. 37
+                dof = self.config.vb_prior_dof
+                q = (dof * q0 + self.win_scale) / (dof + self.win_dof)                         # eq. 39
+                self.win_q = np.minimum(q, WINDOW_MAX_RATIO * q0)
+            self.win_z[:, j], self.win_zz[:, j] = self.tau, self.c      # new snapshot z_j = τ_k
+            self.win_pz[:, j], self.win_tz[:, j] = self.b, self.c
+            self.win_age[j] = 0.0
+        self.Sigma_d = self.win_q * h

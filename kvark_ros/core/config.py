@@ -120,7 +120,7 @@ _SCHEMA: dict[str, tuple[Callable, str, Any]] = {
     "filter.initial_covariance": (*_number(0.0, 1e6, low_open=True), 1.0),
     "filter.vb_iterations": (*_integer(1, 50), 1),
     "filter.vb_forgetting": (*_number(0.0, 1.0, low_open=True), 0.99),
-    "filter.vb_variant": (*_choice(VB_VARIANTS), "smoothed"),
+    "filter.vb_variant": (*_choice(VB_VARIANTS), "window"),
     "filter.vb_window": (*_integer(5, 5000), 25),
     "filter.vb_prior_dof": (*_number(0.0, 1e6, low_open=True), 1.0),
     "filter.measurement": (*_choice(MEASUREMENTS), "momentum"),

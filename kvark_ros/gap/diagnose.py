@@ -452,7 +452,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    robot = RobotModel(config.urdf, config.joint_names, config.ee_frame, config.flange_frame, config.payload)
+    robot = RobotModel.from_config(config)
     segments = load_recordings(config, args.bags, "diagnose")
     log = lambda line: print(line, flush=True)   # noqa: E731
     diag = diagnose(robot, segments, args.holdout, log=log)

@@ -146,19 +146,6 @@ def test_ur5_armature(diagnoses):
     _shrinks(diag)
 
 
-def test_coulomb_and_viscous_friction(diagnoses):
-    diag = diagnoses[("panda", "friction")]
-    coulomb = _effect(diag, "coulomb_friction")
-    assert coulomb["joints"] == list(range(7))
-    # joint 7 (tiny inertia, τ_m ≈ friction) sticks much of the time: only its presence is checked
-    np.testing.assert_allclose(coulomb["parameters"]["coulomb"][:6], PANDA_COULOMB[:6], rtol=0.25)
-    viscous = _effect(diag, "viscous_friction")
-    assert len(viscous["joints"]) >= 4
-    for j, value in zip(viscous["joints"], viscous["parameters"]["viscous"]):
-        assert abs(value - PANDA_VISCOUS[j]) <= 0.3 * PANDA_VISCOUS[j], (j, value)
-    _shrinks(diag, 0.25)
-
-
 def test_torque_offset(diagnoses):
     diag = diagnoses[("panda", "torque_offset")]
     eff = _effect(diag, "torque_offset")
@@ -176,19 +163,44 @@ def test_drive_gain(diagnoses):
     _shrinks(diag)
 
 
-def test_ur5_coulomb_and_viscous_friction(diagnoses):
-    diag = diagnoses[("ur5", "friction")]
-    coulomb = _effect(diag, "coulomb_friction")
-    assert coulomb["joints"] == list(range(6))
-    # measured errors ≤ 6 %: 10 %
-    np.testing.assert_allclose(coulomb["parameters"]["coulomb"], UR5_COULOMB, rtol=0.1)
-    viscous = _effect(diag, "viscous_friction")
-    assert viscous["joints"] == list(range(6))
-    # measured errors 0.03-0.08 N·m·s/rad (≤ 16 % on the big joints, ≤ 31 % of the wrists' 0.1):
-    # 25 % + 0.02 N·m·s/rad, the wrists' viscous torque being comparable to stiction and filter noise
-    for j, value in zip(viscous["joints"], viscous["parameters"]["viscous"]):
-        assert abs(value - UR5_VISCOUS[j]) <= 0.25 * UR5_VISCOUS[j] + 0.02, (j, value)
-    assert [e["name"] for e in diag.result["effects"]] == ["coulomb_friction", "viscous_friction"]
+FRICTION_SPEEDS = np.array([0.3, 0.6, 1.0])   # rad/s, where the arm spends its moving time
+
+
+def _friction_curve(diag, n: int) -> np.ndarray:
+    """Fitted dry + viscous friction (n, speeds) at FRICTION_SPEEDS: what the model adds to τ_EL.
+
+    The dry-friction width ε is chosen from a grid by the held-out gap; MuJoCo's friction constraint
+    and the 0.15 s torque filter round the sign, so a wide ε fits best and trades level against
+    the viscous slope. The curve, not the split, is the physical quantity the fit pins down.
+    """
+    curve = np.zeros((n, len(FRICTION_SPEEDS)))
+    coulomb, viscous = _effect(diag, "coulomb_friction"), _effect(diag, "viscous_friction")
+    for j, level in zip(coulomb["joints"], coulomb["parameters"]["coulomb"]):
+        curve[j] += level * np.tanh(FRICTION_SPEEDS / coulomb["parameters"]["epsilon"])
+    for j, slope in zip(viscous["joints"], viscous["parameters"]["viscous"]):
+        curve[j] += slope * FRICTION_SPEEDS
+    return curve
+
+
+@pytest.mark.parametrize(("robot", "coulomb", "viscous"), [("panda", PANDA_COULOMB, PANDA_VISCOUS),
+                                                             ("ur5", UR5_COULOMB, UR5_VISCOUS)])
+def test_coulomb_and_viscous_friction(diagnoses, robot, coulomb, viscous):
+    diag = diagnoses[(robot, "friction")]
+    n = len(coulomb)
+    assert _effect(diag, "coulomb_friction")["joints"] == list(range(n))
+    assert len(_effect(diag, "viscous_friction")["joints"]) >= 4
+    truth = np.array(coulomb)[:, None] + np.outer(viscous, FRICTION_SPEEDS)
+    fitted = _friction_curve(diag, n)
+    # measured: fitted/true 0.84-1.11 over both robots, speeds and joints (the Panda's last joint,
+    # tiny inertia, sticks much of the time and is the 0.84); stated: 20 %
+    assert np.all(np.abs(fitted - truth) <= 0.2 * truth), np.round(fitted / truth, 3)
+    # The sharp stick-slip transition at q̇ = 0 may add a Stribeck hump (low v_s) and, through the
+    # asymmetric sticking, a small torque offset (measured 0.04 N·m); nothing else.
+    for extra in diag.result["effects"]:
+        if extra["name"] == "torque_offset":
+            assert np.max(np.abs(extra["parameters"]["offset"])) <= 0.1, extra
+        else:
+            assert extra["name"] in ("coulomb_friction", "viscous_friction", "stribeck_friction"), extra
     _shrinks(diag, 0.25)
 
 

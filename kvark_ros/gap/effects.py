@@ -4,7 +4,8 @@ The gap is ``τ_m − τ_EL`` (paper eq. 27) on a contact-free motion: what the 
 spends beyond the nominal rigid-body model. Every effect adds ``Φ(q, q̇, q̈, τ_m) θ`` to it, with
 the sign chosen so that θ is the physical parameter (sign conventions of ``kvark_ros.sim.plant``):
 
-* ``coulomb_friction``  ``F_c tanh(q̇/ε)``, F_c ≥ 0 N·m;
+* ``coulomb_friction``  ``F_c tanh(q̇/ε)``, F_c ≥ 0 N·m, ε from a small grid (a sharp sign for dry
+  friction, a gentle one for the sigmoid friction of real gearboxes);
 * ``viscous_friction``  ``F_v q̇``, F_v ≥ 0 N·m·s/rad;
 * ``stribeck_friction`` ``(F_s − F_c) exp(−(q̇/v_s)²) tanh(q̇/ε)``, ≥ 0, v_s from a small grid;
 * ``armature``          ``I_a q̈``, I_a ≥ 0 kg·m² (rotor inertia seen at the joint);
@@ -13,7 +14,8 @@ the sign chosen so that θ is the physical parameter (sign conventions of ``kvar
 * ``drive_gain``        the drive applies ``g τ_m``: gap ``(1 − g) τ_m``; reported as g;
 * ``torque_offset``     the drive applies ``τ_m + o``: gap ``−o``;
 * ``position_ripple``   the drive applies ``a sin(k q) + b cos(k q)``: gap ``−(a sin + b cos)``;
-* ``joint_offset``      the encoder reads ``q + δ``: gap ``−∂g/∂q_j δ_j`` (gravity sensitivity).
+* ``joint_offset``      the encoder reads ``q + δ``: gap ``−∂τ_EL/∂q_j δ_j`` (first order: gravity,
+  inertia and Coriolis sensitivity, pinocchio's RNEA derivatives).
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ EFFECT_NAMES = ("coulomb_friction", "viscous_friction", "stribeck_friction", "ar
 PER_JOINT = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "drive_gain",
              "torque_offset", "position_ripple")
 STRIBECK_VELOCITIES = (0.03, 0.1, 0.3)        # rad/s, grid of v_s
+COULOMB_WIDTHS = (0.02, 0.05, 0.1, 0.2)       # rad/s, grid of ε
 RIPPLE_CYCLES = (2, 3, 4, 6, 8, 12, 16, 24, 32, 50, 64, 100)   # cycles per revolution, grid of k
 PAYLOAD_PARAMETERS = ("mass", "mx", "my", "mz", "ixx", "ixy", "iyy", "ixz", "iyz", "izz")
 MIN_MASS = 1e-3                               # kg, lower bound of a payload mass
@@ -40,7 +43,7 @@ MAX_GAIN_ERROR = 0.5                          # |g − 1| bound of drive_gain
 @dataclass(frozen=True, eq=False)
 class Signals:
     """Samples of one or more motions: q, q̇, q̈, smoothed τ_m, gap (T, n); payload regressor
-    (T, n, 10) in the flange frame; gravity sensitivity ∂g/∂q (T, n, n)."""
+    (T, n, 10) in the flange frame; position sensitivity ∂τ_EL/∂q (T, n, n)."""
 
     q: np.ndarray
     qd: np.ndarray
@@ -48,14 +51,14 @@ class Signals:
     tau_m: np.ndarray
     gap: np.ndarray
     payload_regressor: np.ndarray
-    gravity_jacobian: np.ndarray
+    position_jacobian: np.ndarray
 
     def __len__(self) -> int:
         return len(self.q)
 
     def take(self, index: np.ndarray) -> "Signals":
         return Signals(*(getattr(self, f)[index] for f in ("q", "qd", "qdd", "tau_m", "gap",
-                                                            "payload_regressor", "gravity_jacobian")))
+                                                            "payload_regressor", "position_jacobian")))
 
 
 def flange_parameter_map(robot: RobotModel) -> tuple[int, np.ndarray]:
@@ -83,13 +86,14 @@ def signals(robot: RobotModel, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, t
     t, n = q.shape
     gap = np.empty((t, n))
     payload = np.empty((t, n, 10))
-    gravity = np.empty((t, n, n))
+    sensitivity = np.empty((t, n, n))
     for k in range(t):
         gap[k] = tau_m[k] - robot.inverse_dynamics(q[k], qd[k], qdd[k])
         y = pin.computeJointTorqueRegressor(model, data, q[k], qd[k], qdd[k])
         payload[k] = y[:, 10 * (jid - 1):10 * jid] @ a_map
-        gravity[k] = pin.computeGeneralizedGravityDerivatives(model, data, q[k])
-    return Signals(q, qd, qdd, tau_m, gap, payload, gravity)
+        pin.computeRNEADerivatives(model, data, q[k], qd[k], qdd[k])
+        sensitivity[k] = data.dtau_dq
+    return Signals(q, qd, qdd, tau_m, gap, payload, sensitivity)
 
 
 @dataclass(frozen=True)
@@ -135,7 +139,7 @@ class Term:
         out = np.zeros((t, n, self.size))
         for i, j in enumerate(self.joints):
             if self.name == "joint_offset":
-                out[:, :, i] = -s.gravity_jacobian[:, :, j]
+                out[:, :, i] = -s.position_jacobian[:, :, j]
                 continue
             if self.name == "armature":
                 cols = [s.qdd[:, j]]
@@ -154,7 +158,7 @@ def variants(name: str) -> list[dict[str, float]]:
     if name == "position_ripple":
         return [{"cycles_per_rev": float(k)} for k in RIPPLE_CYCLES]
     if name == "coulomb_friction":
-        return [{"epsilon": TANH_EPSILON}]
+        return [{"epsilon": eps} for eps in COULOMB_WIDTHS]
     return [{}]
 
 

@@ -146,20 +146,24 @@ def test_ur5_armature(diagnoses):
     _shrinks(diag)
 
 
-def test_torque_offset(diagnoses):
-    diag = diagnoses[("panda", "torque_offset")]
+@pytest.mark.parametrize(("robot", "offset"), [("panda", PANDA_OFFSET), ("ur5", UR5_OFFSET)])
+def test_torque_offset(diagnoses, robot, offset):
+    diag = diagnoses[(robot, "torque_offset")]
     eff = _effect(diag, "torque_offset")
-    assert eff["joints"] == [j for j, v in enumerate(PANDA_OFFSET) if v != 0.0]
-    np.testing.assert_allclose(eff["parameters"]["offset"], [v for v in PANDA_OFFSET if v], atol=0.03)
+    assert eff["joints"] == [j for j, v in enumerate(offset) if v != 0.0]
+    # measured errors < 0.006 N·m (Panda), < 0.001 N·m (UR5): 0.03 N·m
+    np.testing.assert_allclose(eff["parameters"]["offset"], [v for v in offset if v], atol=0.03)
     assert [e["name"] for e in diag.result["effects"]] == ["torque_offset"]
     _shrinks(diag)
 
 
-def test_drive_gain(diagnoses):
-    diag = diagnoses[("panda", "drive_gain")]
+@pytest.mark.parametrize(("robot", "gain"), [("panda", PANDA_GAIN), ("ur5", UR5_GAIN)])
+def test_drive_gain(diagnoses, robot, gain):
+    diag = diagnoses[(robot, "drive_gain")]
     eff = _effect(diag, "drive_gain")
-    assert eff["joints"] == [j for j, v in enumerate(PANDA_GAIN) if v != 1.0]
-    np.testing.assert_allclose(eff["parameters"]["gain"], [v for v in PANDA_GAIN if v != 1.0], atol=0.01)
+    assert eff["joints"] == [j for j, v in enumerate(gain) if v != 1.0]
+    # measured errors < 0.001: 0.01
+    np.testing.assert_allclose(eff["parameters"]["gain"], [v for v in gain if v != 1.0], atol=0.01)
     _shrinks(diag)
 
 
@@ -244,31 +248,9 @@ def test_joint_offset(diagnoses, robot):
     truth = JOINT_OFFSET[robot]
     eff = _effect(diag, "joint_offset")
     assert eff["joints"] == [j for j, d in enumerate(truth) if d]
-    # The effect is the gravity sensitivity −∂g/∂q δ; the offset also shifts the inertia and
-    # Coriolis terms (M(q) − M(q + δ)) q̈, which it leaves to other effects (small drive gains,
-    # ripple, armature are named alongside on these plants) and which biases δ: measured errors
-    # ≤ 0.005 rad (Panda), ≤ 0.007 rad (UR5): 0.01 rad, a quarter of the offsets
+    # The regressor is the first-order sensitivity −∂τ_EL/∂q δ (gravity, inertia and Coriolis);
+    # measured errors ≤ 0.002 rad: 0.01 rad, a quarter of the offsets
     np.testing.assert_allclose(eff["parameters"]["offset"], [d for d in truth if d], atol=0.01)
-    _shrinks(diag)
-
-
-def test_ur5_torque_offset(diagnoses):
-    diag = diagnoses[("ur5", "torque_offset")]
-    eff = _effect(diag, "torque_offset")
-    assert eff["joints"] == [j for j, v in enumerate(UR5_OFFSET) if v != 0.0]
-    # measured errors < 0.001 N·m: 0.01 N·m
-    np.testing.assert_allclose(eff["parameters"]["offset"], [v for v in UR5_OFFSET if v], atol=0.01)
-    assert [e["name"] for e in diag.result["effects"]] == ["torque_offset"]
-    _shrinks(diag)
-
-
-def test_ur5_drive_gain(diagnoses):
-    diag = diagnoses[("ur5", "drive_gain")]
-    eff = _effect(diag, "drive_gain")
-    assert eff["joints"] == [j for j, v in enumerate(UR5_GAIN) if v != 1.0]
-    # measured errors < 0.001: 0.01
-    np.testing.assert_allclose(eff["parameters"]["gain"], [v for v in UR5_GAIN if v != 1.0], atol=0.01)
-    assert [e["name"] for e in diag.result["effects"]] == ["drive_gain"]
     _shrinks(diag)
 
 

@@ -51,6 +51,8 @@ class EstimatorConfig:
     vb_variant: str
     vb_window: int
     vb_prior_dof: float
+    onset_threshold: float
+    onset_window: int
     measurement: str
     huang_tau: float
     ewma_rate: float
@@ -123,6 +125,8 @@ _SCHEMA: dict[str, tuple[Callable, str, Any]] = {
     "filter.vb_variant": (*_choice(VB_VARIANTS), "window"),
     "filter.vb_window": (*_integer(5, 5000), 25),
     "filter.vb_prior_dof": (*_number(0.0, 1e6, low_open=True), 1.0),
+    "filter.onset_threshold": (*_number(0.0, 1e6), 0.0),
+    "filter.onset_window": (*_integer(2, 500), 10),
     "filter.measurement": (*_choice(MEASUREMENTS), "momentum"),
     "filter.huang_tau": (*_number(0.0, 1e6, low_open=True), 300.0),
     "filter.ewma_rate": (*_number(0.0, 1.0, low_open=True), 0.01),
@@ -195,6 +199,8 @@ def config_from_parameters(parameters: Mapping[str, Any], source: str = "configu
         vb_variant=values["filter.vb_variant"],
         vb_window=values["filter.vb_window"],
         vb_prior_dof=values["filter.vb_prior_dof"],
+        onset_threshold=values["filter.onset_threshold"],
+        onset_window=values["filter.onset_window"],
         measurement=values["filter.measurement"],
         huang_tau=values["filter.huang_tau"],
         ewma_rate=values["filter.ewma_rate"],

@@ -135,6 +135,10 @@ PARAMETERS: dict[str, ParameterSpec] = {
                                       limits=(5, 5000)),
     "filter.vb_prior_dof": ParameterSpec(T.DOUBLE, "prior strength (windows) of the window VB variant", "(0, 1e6]",
                                          limits=(0.0, 1e6)),
+    "filter.onset_threshold": ParameterSpec(T.DOUBLE, "contact-onset GLR threshold on 2 ln(Lambda), 0 = off "
+                                            "(momentum form)", "[0, 1e6]", limits=(0.0, 1e6)),
+    "filter.onset_window": ParameterSpec(T.INTEGER, "onset hypotheses kept per joint, samples", "[2, 500]",
+                                         limits=(2, 500)),
     "filter.measurement": ParameterSpec(T.STRING, "form of the filter", f"one of {', '.join(MEASUREMENTS)}"),
     "filter.huang_tau": ParameterSpec(T.DOUBLE, "prior strength of the huang variant", "(0, 1e6]",
                                       limits=(0.0, 1e6)),

@@ -125,7 +125,7 @@ _SCHEMA: dict[str, tuple[Callable, str, Any]] = {
     "filter.vb_variant": (*_choice(VB_VARIANTS), "window"),
     "filter.vb_window": (*_integer(5, 5000), 25),
     "filter.vb_prior_dof": (*_number(0.0, 1e6, low_open=True), 1.0),
-    "filter.onset_threshold": (*_number(0.0, 1e6), 0.0),
+    "filter.onset_threshold": (*_number(0.0, 1e6), 60.0),
     "filter.onset_window": (*_integer(2, 500), 10),
     "filter.measurement": (*_choice(MEASUREMENTS), "momentum"),
     "filter.huang_tau": (*_number(0.0, 1e6, low_open=True), 300.0),

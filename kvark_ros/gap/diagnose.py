@@ -12,7 +12,12 @@
    removing it does not worsen the BIC or does not worsen the held-out gap of any joint by
    ``MIN_REDUCTION`` and ``MIN_ABS_REDUCTION`` (an effect accepted early can be made redundant
    by later ones, and a small effect can soak up what a later one explains); repeated until every
-   remaining effect is needed. Each remaining effect's reported reduction is the held-out gap of
+   remaining effect is needed. Because effects can look alike along a motion (a payload and drive
+   gain errors both scale with gravity), greedy selection is run ``STARTS`` times, each from
+   another acceptable first effect; a later selection replaces the kept one when it has a lower
+   BIC with no more effects (BIC alone, with correlated samples, lets small spurious effects in:
+   a run that trades one look-alike for the right effect ends with fewer of them). Each remaining
+   effect's reported reduction is the held-out gap of
    all effects but that one against all of them;
 3. writes ``diagnosis.json``, ``augmentation.yaml`` (the accepted effects, loadable by
    ``effects.augmentation_gap``), ``report.md`` and plots.
@@ -44,6 +49,7 @@ MIN_REDUCTION = 0.05     # an effect must cut the held-out gap of its joints by 
 MIN_ABS_REDUCTION = 0.005  # N·m, and by at least this much (filter noise floor)
 DECIMATE_DT = 0.008      # s, sample spacing after smoothing (the filter passes far less than 60 Hz)
 SCREEN_TOP = 4           # candidates refitted jointly per round
+STARTS = 3               # greedy runs, each from another acceptable first effect; the lowest BIC wins
 
 
 @dataclass
@@ -187,6 +193,21 @@ def _screen_coupled(name: str, variant: dict, fitter: _Fitter, terms: Sequence[T
     return Term(name, tuple(chosen), variant) if chosen else None
 
 
+def _without_saturated_gains(fitter: _Fitter, terms: Sequence[Term], term: Term, *fit: np.ndarray) -> tuple:
+    """A drive-gain candidate without the joints whose gain error sits at its bound, refitted.
+
+    A gain at the bound is another effect seen through τ_m (on a light wrist joint τ_m is mostly
+    friction); left in, it would make the whole candidate inadmissible and hide real gain errors on
+    the other joints."""
+    pos = sum(t.size for t in terms)
+    gains = fit[0][pos:pos + term.size]
+    keep = tuple(j for j, g in zip(term.joints, gains) if abs(g) < 0.99 * MAX_GAIN_ERROR)
+    if keep == term.joints or not keep:
+        return term, fit
+    reduced = Term(term.name, keep, term.variant)
+    return reduced, fitter.fit([*terms, reduced])
+
+
 def _affected(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     """Joints whose held-out gap drops by ≥ MIN_REDUCTION (relative) and MIN_ABS_REDUCTION."""
     drop = before - after
@@ -230,6 +251,76 @@ def _prune(fitter: _Fitter, terms: list[Term], theta: np.ndarray, cov: np.ndarra
     return terms, theta, cov, r_tr, r_he, history
 
 
+def _greedy(fitter: _Fitter, effects: Sequence[str], n: int, first_choice: int,
+            log: Callable[[str], None]) -> tuple | None:
+    """Forward selection and the backward pass (module docstring, step 2), starting in the first
+    round from the acceptable candidate of the ``first_choice``-th distinct effect name (0 = the
+    best candidate); None when the first round has fewer acceptable effects. Returns (terms, θ, covariance, train and held-out
+    residuals, history, BIC)."""
+    terms: list[Term] = []
+    theta, cov, r_tr, r_he = fitter.fit(terms)
+    bic = fitter.bic(r_tr, 0)
+    while True:
+        used = {t.name for t in terms}
+        candidates = []
+        for name in effects:
+            if name in used:
+                continue
+            for variant in variants(name):
+                term = _screen(name, variant, fitter, terms, r_he, n)
+                if term is not None:
+                    candidates.append(term)
+        scored = []
+        for term in candidates:
+            t0 = fitter.fit([*terms, term])
+            score = float(np.mean(np.square(t0[3] * fitter.w)))
+            scored.append((score, term, t0))
+        scored.sort(key=lambda item: item[0])
+        accepted = False
+        skip = first_choice if not terms else 0      # first round: effect names still to pass over
+        passed: set[str] = set()
+        before = _rmse(r_he)
+        for score, term, (th, cv, rt, rh) in (scored if skip else scored[:SCREEN_TOP]):
+            if term.name in passed:
+                continue
+            if term.name == "drive_gain":
+                term, (th, cv, rt, rh) = _without_saturated_gains(fitter, terms, term, th, cv, rt, rh)
+            k = sum(t.size for t in terms) + term.size
+            new_bic = fitter.bic(rt, k)
+            after = _rmse(rh)
+            joints = _affected(before, after)
+            physical = True
+            if term.name == "payload":
+                pos = sum(t.size for t in terms)
+                physical = payload_parameters(th[pos:pos + term.size], None)[0]["physically_consistent"]
+            elif term.name == "drive_gain":   # a gain error at its bound is another effect seen through τ_m
+                pos = sum(t.size for t in terms)
+                physical = bool(np.all(np.abs(th[pos:pos + term.size]) < 0.99 * MAX_GAIN_ERROR))
+            if new_bic >= bic or len(joints) == 0 or not physical:
+                log(f"[diagnose]   rejected {term.name} {list(term.joints)}: ΔBIC {new_bic - bic:+.1f}, "
+                    f"{'' if physical else 'not physically admissible, '}"
+                    f"held-out gap {np.round(before, 4).tolist()} → {np.round(after, 4).tolist()}")
+                continue
+            if skip:
+                skip -= 1
+                passed.add(term.name)
+                continue
+            red = 1.0 - np.sqrt(np.mean(np.square(after[joints]))) / np.sqrt(np.mean(np.square(before[joints])))
+            terms.append(term)
+            old_bic = bic
+            theta, cov, r_tr, r_he, bic = th, cv, rt, rh, new_bic
+            log(f"[diagnose] accepted {term.name} {dict(term.variant)} on joints {list(term.joints)}: "
+                f"held-out gap of joints {joints.tolist()} −{red:.0%}, ΔBIC {new_bic - old_bic:+.0f}")
+            accepted = True
+            break
+        if not accepted:
+            if not terms and first_choice:
+                return None
+            break
+    terms, theta, cov, r_tr, r_he, history = _prune(fitter, terms, theta, cov, r_tr, r_he, bic, log)
+    return terms, theta, cov, r_tr, r_he, history, fitter.bic(r_tr, sum(t.size for t in terms))
+
+
 def _single_threaded_blas() -> contextlib.AbstractContextManager:
     """BLAS limited to one thread: the selection solves hundreds of small least-squares problems
     (thousands of rows × tens of columns), which threads do not speed up; on a busy machine their
@@ -264,59 +355,18 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
     weights = 1.0 / np.maximum(_rmse(train.gap), 0.01)
     fitter = _Fitter(train, held, weights)
     log(f"[diagnose] held-out gap per joint before: {np.round(gap_before, 4).tolist()} N·m")
-    terms: list[Term] = []
-    history: list[dict] = []
-    theta, cov, r_tr, r_he = fitter.fit(terms)
-    bic = fitter.bic(r_tr, 0)
-    while True:
-        used = {t.name for t in terms}
-        candidates = []
-        for name in effects:
-            if name in used:
-                continue
-            for variant in variants(name):
-                term = _screen(name, variant, fitter, terms, r_he, n)
-                if term is not None:
-                    candidates.append(term)
-        scored = []
-        for term in candidates:
-            t0 = fitter.fit([*terms, term])
-            score = float(np.mean(np.square(t0[3] * weights)))
-            scored.append((score, term, t0))
-        scored.sort(key=lambda item: item[0])
-        accepted = False
-        before = _rmse(r_he)
-        for score, term, (th, cv, rt, rh) in scored[:SCREEN_TOP]:
-            k = sum(t.size for t in terms) + term.size
-            new_bic = fitter.bic(rt, k)
-            after = _rmse(rh)
-            joints = _affected(before, after)
-            physical = True
-            if term.name == "payload":
-                pos = sum(t.size for t in terms)
-                physical = payload_parameters(th[pos:pos + term.size], None)[0]["physically_consistent"]
-            elif term.name == "drive_gain":   # a gain error at its bound is another effect seen through τ_m
-                pos = sum(t.size for t in terms)
-                physical = bool(np.all(np.abs(th[pos:pos + term.size]) < 0.99 * MAX_GAIN_ERROR))
-            if new_bic >= bic or len(joints) == 0 or not physical:
-                log(f"[diagnose]   rejected {term.name} {list(term.joints)}: ΔBIC {new_bic - bic:+.1f}, "
-                    f"{'' if physical else 'not physically admissible, '}"
-                    f"held-out gap {np.round(before, 4).tolist()} → {np.round(after, 4).tolist()}")
-                continue
-            red = 1.0 - np.sqrt(np.mean(np.square(after[joints]))) / np.sqrt(np.mean(np.square(before[joints])))
-            terms.append(term)
-            old_bic = bic
-            theta, cov, r_tr, r_he, bic = th, cv, rt, rh, new_bic
-            history.append({"affected": joints.tolist(), "gap_reduction": float(red),
-                            "held_out_rmse_before": before[joints].tolist(),
-                            "held_out_rmse_after": after[joints].tolist()})
-            log(f"[diagnose] accepted {term.name} {dict(term.variant)} on joints {list(term.joints)}: "
-                f"held-out gap of joints {joints.tolist()} −{red:.0%}, ΔBIC {new_bic - old_bic:+.0f}")
-            accepted = True
+    best = None
+    for start in range(STARTS):
+        found = _greedy(fitter, effects, n, start, lambda line, k=start + 1: log(
+            line.replace("[diagnose]", f"[diagnose] start {k}:")))
+        if found is None:
             break
-        if not accepted:
-            break
-    terms, theta, cov, r_tr, r_he, history = _prune(fitter, terms, theta, cov, r_tr, r_he, bic, log)
+        score = float(np.sqrt(np.mean(np.square(found[4] * fitter.w))))
+        log(f"[diagnose] start {start + 1}: {[t.name for t in found[0]]}, BIC {found[-1]:.0f}, "
+            f"weighted held-out gap {score:.4f}")
+        if best is None or (found[-1] < best[-1] and len(found[0]) <= len(best[0])):
+            best = found
+    terms, theta, cov, r_tr, r_he, history, bic = best
     gap_after = _rmse(r_he)
     result_effects, thetas = [], []
     pos = 0

@@ -177,6 +177,19 @@ def test_smoothed_vb_statistic_equals_the_matrix_rts_smoother(panda_config, rng)
         assert np.isclose(got[0], max(expected, 0.0), rtol=1e-8, atol=1e-12)
 
 
+def _random_walk_run(observer, n: int, h: float, density: float, R: float, steps: int, rng):
+    """Step ``observer`` on a free joint (u = 0) pushed by a random-walk τ_ext of ``density``
+    N²·m²/s, momentum measured with variance R; yields the step index after each step."""
+    p_true, p_prev, zero, tau = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+    for k in range(steps):
+        tau = tau + rng.normal(0.0, np.sqrt(density * h), n)
+        p_true = p_true + h * tau
+        p = p_true + rng.normal(0.0, np.sqrt(R), n)
+        observer.step(h, zero, p, p_prev, zero)
+        p_prev = p
+        yield k
+
+
 def _window_filter(panda_config, n: int, q0: float, R: float, variant: str = "window"):
     from kvark_ros.core.observers.kvark_momentum import KVARKMomentumFilter
     from kvark_ros.core.observers.momentum_observers import MomentumNoise
@@ -219,16 +232,7 @@ def test_window_vb_learns_the_density_of_a_random_walk(panda_config, rng):
     n, h, q0, R = 3, 0.002, 0.05, 1e-6
     observer = _window_filter(panda_config, n, q0, R)
     q_true = 100.0 * q0
-    p_true, p_prev, u, tau = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
-    learned = []
-    for k in range(5000):
-        tau = tau + rng.normal(0.0, np.sqrt(q_true * h), n)
-        p_true = p_true + h * (u + tau)
-        p = p_true + rng.normal(0.0, np.sqrt(R), n)
-        observer.step(h, np.zeros(n), p, p_prev, u)
-        p_prev = p
-        if k >= 1000:
-            learned.append(observer.win_q)
+    learned = [observer.win_q for k in _random_walk_run(observer, n, h, q_true, R, 5000, rng) if k >= 1000]
     ratio = np.mean(learned, axis=0) / q_true
     assert np.all((ratio > 0.6) & (ratio < 1.0))
 
@@ -321,11 +325,6 @@ def test_onset_detector_stays_quiet_without_a_jump(panda_config, rng):
     """20 s of a slow random-walk τ_ext (the prior density) with momentum noise: no alarm."""
     n, h, q0, R = 7, 0.002, 0.05, 1e-6
     observer = _onset_filter(panda_config, n, 60.0)
-    p_true, p_prev, u, tau = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
-    for k in range(10000):
-        tau = tau + rng.normal(0.0, np.sqrt(q0 * h), n)
-        p_true = p_true + h * (u + tau)
-        p = p_true + rng.normal(0.0, np.sqrt(R), n)
-        observer.step(h, np.zeros(n), p, p_prev, u)
-        p_prev = p
+    for _ in _random_walk_run(observer, n, h, q0, R, 10000, rng):
+        pass
     assert observer.onset_alarms == 0

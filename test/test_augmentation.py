@@ -105,7 +105,7 @@ def test_augmented_momentum_uses_the_augmented_inertia_and_the_drive_torque(conf
 
 def test_batch_and_single_sample_augmentation_torques_agree(augmentation, rng):
     q, qd, tau = rng.uniform(-1, 1, (6, 7)), rng.uniform(-1, 1, (6, 7)), rng.uniform(-9, 9, (6, 7))
-    batch = augmentation.joint_torque_batch(q, qd, tau)
+    batch = augmentation.joint_torque(q, qd, tau)
     np.testing.assert_allclose(batch, [augmentation.joint_torque(*x) for x in zip(q, qd, tau)])
     assert augmentation.effect_names[:2] == ("payload", "armature")
 

@@ -93,23 +93,13 @@ class Augmentation:
     sha256: str
 
     def joint_torque(self, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> np.ndarray:
-        """``τ_aug(q, q̇, τ_m)`` (n,) N·m, q as measured."""
-        total = np.zeros(len(self.joint_names))
-        for effect in self.torque_effects:
-            j = effect.joints
-            columns = joint_columns(effect.name, effect.variant, q[j], qd[j], tau_m[j])
-            for c, column in enumerate(columns):
-                total[j] += column * effect.theta[:, c]
-        return total
-
-    def joint_torque_batch(self, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> np.ndarray:
-        """``τ_aug`` for samples (T, n) -> (T, n)."""
+        """``τ_aug(q, q̇, τ_m)`` N·m, q as measured: one sample (n,) or samples (T, n)."""
         total = np.zeros(np.shape(q))
         for effect in self.torque_effects:
             j = effect.joints
-            columns = joint_columns(effect.name, effect.variant, q[:, j], qd[:, j], tau_m[:, j])
+            columns = joint_columns(effect.name, effect.variant, q[..., j], qd[..., j], tau_m[..., j])
             for c, column in enumerate(columns):
-                total[:, j] += column * effect.theta[:, c]
+                total[..., j] += column * effect.theta[:, c]
         return total
 
 

@@ -251,7 +251,25 @@ def _prune(fitter: _Fitter, terms: list[Term], theta: np.ndarray, cov: np.ndarra
     return terms, theta, cov, r_tr, r_he, history
 
 
-def _greedy(fitter: _Fitter, effects: Sequence[str], n: int, first_choice: int,
+def _scored_candidates(fitter: _Fitter, terms: Sequence[Term], r_he: np.ndarray, effects: Sequence[str],
+                       n: int) -> list[tuple]:
+    """Every screened candidate added to ``terms`` and fitted: (weighted held-out error, term, fit),
+    best first."""
+    used = {t.name for t in terms}
+    scored = []
+    for name in effects:
+        if name in used:
+            continue
+        for variant in variants(name):
+            term = _screen(name, variant, fitter, terms, r_he, n)
+            if term is not None:
+                fit = fitter.fit([*terms, term])
+                scored.append((float(np.mean(np.square(fit[3] * fitter.w))), term, fit))
+    scored.sort(key=lambda item: item[0])
+    return scored
+
+
+def _greedy(fitter: _Fitter, effects: Sequence[str], n: int, first_choice: int, first_round: list[tuple],
             log: Callable[[str], None]) -> tuple | None:
     """Forward selection and the backward pass (module docstring, step 2), starting in the first
     round from the acceptable candidate of the ``first_choice``-th distinct effect name (0 = the
@@ -261,21 +279,7 @@ def _greedy(fitter: _Fitter, effects: Sequence[str], n: int, first_choice: int,
     theta, cov, r_tr, r_he = fitter.fit(terms)
     bic = fitter.bic(r_tr, 0)
     while True:
-        used = {t.name for t in terms}
-        candidates = []
-        for name in effects:
-            if name in used:
-                continue
-            for variant in variants(name):
-                term = _screen(name, variant, fitter, terms, r_he, n)
-                if term is not None:
-                    candidates.append(term)
-        scored = []
-        for term in candidates:
-            t0 = fitter.fit([*terms, term])
-            score = float(np.mean(np.square(t0[3] * fitter.w)))
-            scored.append((score, term, t0))
-        scored.sort(key=lambda item: item[0])
+        scored = first_round if not terms else _scored_candidates(fitter, terms, r_he, effects, n)
         accepted = False
         skip = first_choice if not terms else 0      # first round: effect names still to pass over
         passed: set[str] = set()
@@ -356,8 +360,9 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
     fitter = _Fitter(train, held, weights)
     log(f"[diagnose] held-out gap per joint before: {np.round(gap_before, 4).tolist()} N·m")
     best = None
+    first_round = _scored_candidates(fitter, [], held.gap, effects, n)    # shared by every start
     for start in range(STARTS):
-        found = _greedy(fitter, effects, n, start, lambda line, k=start + 1: log(
+        found = _greedy(fitter, effects, n, start, first_round, lambda line, k=start + 1: log(
             line.replace("[diagnose]", f"[diagnose] start {k}:")))
         if found is None:
             break

@@ -51,6 +51,7 @@ from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 from sklearn.neural_network import MLPRegressor
 from threadpoolctl import threadpool_limits
 
+from kvark_ros.core.atomic_file import write_atomically
 from kvark_ros.core.residual_model import (
     VARIANCE_FLOOR,
     GMRReference,
@@ -61,7 +62,6 @@ from kvark_ros.core.residual_model import (
     freeze_positive_vectors,
     read_model_header,
     _read_arrays,
-    _write_atomically,
     fit_gmr_reference,
 )
 
@@ -305,8 +305,8 @@ def _save_pair(directory: str | os.PathLike, stem: str, arrays: Mapping[str, np.
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     text = _header_text(header)
-    _write_atomically(directory / f"{stem}.npz", lambda f: np.savez(f, **arrays))
-    _write_atomically(directory / f"{stem}.yaml", lambda f: f.write(text.encode()))
+    write_atomically(directory / f"{stem}.npz", lambda f: np.savez(f, **arrays))
+    write_atomically(directory / f"{stem}.yaml", lambda f: f.write(text.encode()))
 
 
 def _check_listed(yaml_path: Path, npz_path: Path, listed: Any, arrays: Mapping[str, np.ndarray],

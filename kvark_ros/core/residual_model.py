@@ -18,17 +18,18 @@ evaluation and one small batched matrix-vector product.
 from __future__ import annotations
 
 import os
-import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import scipy.linalg
 import yaml
 from scipy.special import logsumexp
 from sklearn.mixture import GaussianMixture
+
+from kvark_ros.core.atomic_file import write_atomically
 
 __all__ = [
     "GMRReference",
@@ -399,8 +400,8 @@ class KMPResidualModel:
             header_text = yaml.safe_dump(header, sort_keys=False)
         except yaml.YAMLError as exc:
             raise ValueError(f"metadata must contain plain YAML types only ({exc})") from exc
-        _write_atomically(directory / NPZ_NAME, lambda f: np.savez(f, **arrays))
-        _write_atomically(directory / YAML_NAME, lambda f: f.write(header_text.encode()))
+        write_atomically(directory / NPZ_NAME, lambda f: np.savez(f, **arrays))
+        write_atomically(directory / YAML_NAME, lambda f: f.write(header_text.encode()))
 
     @classmethod
     def load(cls, directory: str | os.PathLike) -> KMPResidualModel:
@@ -435,21 +436,6 @@ class KMPResidualModel:
             return cls(reference, hyper, metadata=header["metadata"])
         except ResidualModelError as exc:
             raise ResidualModelError(f"{npz_path}: {exc}") from exc
-
-
-def _write_atomically(path: Path, write: Callable[[Any], Any]) -> None:
-    """Write `path` atomically: `write(f)` into a temp file beside it, then os.replace."""
-    fd, tmp_name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp_name, path)
-    except BaseException:
-        if os.path.exists(tmp_name):
-            os.unlink(tmp_name)
-        raise
 
 
 def read_model_header(path: Path, int_keys: tuple[str, ...], model: str | None = None) -> dict[str, Any]:

@@ -36,6 +36,7 @@ import numpy as np
 import yaml
 from scipy.optimize import lsq_linear
 
+from kvark_ros.core.atomic_file import write_text_atomically
 from kvark_ros.core.config import load_config
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.gap.effects import (EFFECT_NAMES, MAX_GAIN_ERROR, PER_JOINT, Signals, Term, payload_parameters,
@@ -417,9 +418,9 @@ def write_outputs(diag: Diagnosis, robot: RobotModel, out: Path, robot_name: str
                   log: Callable[[str], None] = print) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / "diagnosis.json", out / "augmentation.yaml", out / "report.md"]
-    paths[0].write_text(json.dumps(diag.result, indent=2))
-    paths[1].write_text(yaml.safe_dump(augmentation(diag, robot, robot_name), sort_keys=False))
-    paths[2].write_text(report(diag, robot))
+    write_text_atomically(paths[0], json.dumps(diag.result, indent=2))
+    write_text_atomically(paths[1], yaml.safe_dump(augmentation(diag, robot, robot_name), sort_keys=False))
+    write_text_atomically(paths[2], report(diag, robot))
     if plots:
         paths.extend(plot(diag, robot, out))
     for path in paths:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
+from kvark_ros.core.atomic_file import write_text_atomically
 from kvark_ros.core.augmentation import load_augmentation
 from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, default_config_path, load_config
 from kvark_ros.core.model_store import save_model
@@ -121,7 +122,7 @@ def write_report(out: Path, results: Mapping[str, Any], training: Mapping[str, A
         text += ["", augmentation_section(results)]
     text += ["", "## Acceptance checks", ""] + acceptance(scenarios)
     text += ["", "Per-scenario reports and plots: " + ", ".join(f"[{n}]({n}/report.md)" for n in scenarios)]
-    (out / "report.md").write_text("\n".join(text) + "\n")
+    write_text_atomically(out / "report.md", "\n".join(text) + "\n")
 
 
 def augmentation_section(results: Mapping[str, Any]) -> str:
@@ -187,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
                                                 write_bag=False, log=log)
     if args.augment:
         results["augmented"] = augmented_run(config, segments, test_bags, out, args.seed, log)
-    (out / "results.json").write_text(json.dumps(results, indent=2))
+    write_text_atomically(out / "results.json", json.dumps(results, indent=2))
     write_report(out, results, trained.info, args.robot, plan, time.perf_counter() - started)
     for line in acceptance(results["scenarios"]):
         log(line)

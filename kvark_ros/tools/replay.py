@@ -19,6 +19,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from kvark_ros.core.atomic_file import write_text_atomically
 from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, load_config
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.model_store import TrainedModel, load_model
@@ -174,7 +175,7 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
     out.mkdir(parents=True, exist_ok=True)
     if write_bag:
         write_estimates(out / "estimates", run, inputs, results, config)
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_text_atomically(out / "metrics.json", json.dumps(metrics, indent=2))
     if plots:
         from kvark_ros.tools.report import write_replay_report
         write_replay_report(out, metrics, robot, inputs, truth, results)

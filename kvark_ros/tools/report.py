@@ -6,6 +6,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from kvark_ros.core.atomic_file import write_text_atomically
 from kvark_ros.tools.plots import plot_error_bars, plot_time_histories
 
 PLOTTED_OBSERVERS = ("kvark", "kf", "momentum", "oracle")   # time histories stay readable with a few lines
@@ -55,5 +56,5 @@ def write_replay_report(out: Path, metrics: Mapping[str, Any], robot: Any, input
             f"- bag decoding: {metrics['decode_seconds']} s", "",
             metrics_table(metrics["observers"]), ""]
     text += [f"![{path.stem}]({path.name})" for path in figures]
-    (out / "report.md").write_text("\n".join(text) + "\n")
+    write_text_atomically(out / "report.md", "\n".join(text) + "\n")
     return figures

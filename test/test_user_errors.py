@@ -335,7 +335,7 @@ def _plant(tmp_path: Path, case: str) -> Path:
 @pytest.mark.parametrize("case", [*sorted(PLANT_CASES), "missing"])
 def test_simulate_with_a_bad_plant_file(tmp_path, capsys, case):
     plant = tmp_path / "no_such_plant.yaml" if case == "missing" else _plant(tmp_path, case)
-    word = "cannot read" if case == "missing" else PLANT_CASES[case][1]
+    word = "plant file not found" if case == "missing" else PLANT_CASES[case][1]
     out = tmp_path / "sim_bag"
     code, err = _cli(capsys, ["simulate", "--scenario", "excitation", "--duration", "0.1",
                               "--plant", str(plant), "--out", str(out)])

@@ -14,8 +14,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
-import yaml
 
+from kvark_ros.core.files import read_yaml
 from kvark_ros.core.robot_model import EXAMPLE_ROBOT_DATA_PREFIX, Payload
 
 NODE_NAME = "kvark_estimator"
@@ -227,17 +227,8 @@ def load_config(path: str | os.PathLike, **overrides: Any) -> EstimatorConfig:
     working directory.
     """
     source = str(path)
-    try:
-        document = yaml.safe_load(Path(path).read_text())
-    except FileNotFoundError as exc:
-        raise ConfigError(f"{source}: file not found; pass an existing config such as config/panda.yaml") from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{source}: cannot read the config ({getattr(exc, 'strerror', None) or 'not a text file'}); "
-                          "pass a YAML file such as config/panda.yaml") from exc
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise ConfigError(f"{source}: invalid YAML{where}; fix the syntax") from exc
+    document = read_yaml(path, ConfigError, "config file", "pass an existing config such as config/panda.yaml",
+                         "pass a YAML file such as config/panda.yaml")
     try:
         parameters = document[NODE_NAME]["ros__parameters"]
     except (TypeError, KeyError) as exc:

@@ -18,6 +18,7 @@ from typing import Any, Mapping
 
 import yaml
 
+from kvark_ros.core.files import read_yaml
 from kvark_ros import __version__
 from kvark_ros.core.augmentation import Augmentation, AugmentationError, parse_augmentation
 from kvark_ros.core.observers.base import FilterTuning
@@ -104,15 +105,9 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
     path = Path(directory) / MODEL_FILE
     if Path(directory).exists() and not Path(directory).is_dir():
         raise ResidualModelError(f"{directory}: not a model directory; pass the directory `kvark train` wrote")
-    try:
-        document = yaml.safe_load(path.read_text())
-    except FileNotFoundError as exc:
-        raise ResidualModelError(f"{path}: model file not found; train one with `kvark train` "
-                                 "or set residual_model.model_dir") from exc
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ResidualModelError(f"{path}: cannot read the model file (not text); retrain the model") from exc
-    except yaml.YAMLError as exc:
-        raise ResidualModelError(f"{path}: not valid YAML; retrain the model") from exc
+    document = read_yaml(path, ResidualModelError, "model file",
+                         "train one with `kvark train` or set residual_model.model_dir", "retrain the model",
+                         "retrain the model")
     if not isinstance(document, dict) or document.get("format") != MODEL_FORMAT:
         raise ResidualModelError(f"{path}: unknown model format; expected format {MODEL_FORMAT}, retrain the model")
     try:

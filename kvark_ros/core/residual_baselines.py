@@ -51,7 +51,7 @@ from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 from sklearn.neural_network import MLPRegressor
 from threadpoolctl import threadpool_limits
 
-from kvark_ros.core.atomic_file import write_atomically
+from kvark_ros.core.files import write_atomically
 from kvark_ros.core.residual_model import (
     VARIANCE_FLOOR,
     GMRReference,

@@ -29,7 +29,7 @@ import yaml
 from scipy.special import logsumexp
 from sklearn.mixture import GaussianMixture
 
-from kvark_ros.core.atomic_file import write_atomically
+from kvark_ros.core.files import read_yaml, write_atomically
 
 __all__ = [
     "GMRReference",
@@ -442,14 +442,8 @@ def read_model_header(path: Path, int_keys: tuple[str, ...], model: str | None =
     """Read and check a model's YAML header (format version, ``model`` name if given, positive
     integers ``n_joints`` and ``int_keys``, optional ``metadata`` mapping); ResidualModelError naming
     ``path`` on any problem. Shared by KMP and the baselines' models."""
-    try:
-        header = yaml.safe_load(path.read_text())
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ResidualModelError(f"{path}: cannot read ({type(exc).__name__}); retrain the model") from exc
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise ResidualModelError(f"{path}: not valid YAML{where}; retrain the model") from exc
+    header = read_yaml(path, ResidualModelError, "model header", "retrain the model", "retrain the model",
+                       "retrain the model")
     if not isinstance(header, dict):
         raise ResidualModelError(f"{path}: expected a mapping at top level")
     version = header.get("format_version")

@@ -41,9 +41,9 @@ from typing import Any, cast
 
 import numpy as np
 import numpy.typing as npt
-import yaml
 from scipy.special import expit
 
+from kvark_ros.core.files import read_yaml
 from kvark_ros.core.robot_model import Payload
 
 FloatArray = npt.NDArray[np.float64]
@@ -121,15 +121,8 @@ def load_plant(source: str | os.PathLike[str] | Mapping[str, Any] | None, n_join
         data = source
     else:
         where = os.fspath(source)
-        try:
-            data = yaml.safe_load(Path(where).read_text()) or {}
-        except (OSError, UnicodeDecodeError) as exc:
-            raise PlantError(f"{where}: cannot read plant file ({getattr(exc, 'strerror', None) or 'not text'}); "
-                             f"pass an existing plant file such as {default_plant_path('panda')}") from exc
-        except yaml.YAMLError as exc:
-            mark = getattr(exc, "problem_mark", None)
-            line = f" at line {mark.line + 1}" if mark is not None else ""
-            raise PlantError(f"{where}: not valid YAML{line}; fix the syntax") from exc
+        fix = f"pass an existing plant file such as {default_plant_path('panda')}"
+        data = read_yaml(where, PlantError, "plant file", fix, fix) or {}
     if not isinstance(data, Mapping):
         raise PlantError(f"{where}: a plant file is a mapping of keys {list(_TOP_KEYS)}")
     return _Parser(where, n_joints).parse(data)

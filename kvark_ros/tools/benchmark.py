@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from kvark_ros.core.atomic_file import write_text_atomically
+from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.augmentation import load_augmentation
 from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, default_config_path, load_config
 from kvark_ros.core.model_store import save_model

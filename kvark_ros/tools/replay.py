@@ -19,7 +19,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from kvark_ros.core.atomic_file import write_text_atomically
+from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, load_config
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.model_store import TrainedModel, load_model

@@ -6,7 +6,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from kvark_ros.core.atomic_file import write_text_atomically
+from kvark_ros.core.files import write_text_atomically
 from kvark_ros.tools.plots import plot_error_bars, plot_time_histories
 
 PLOTTED_OBSERVERS = ("kvark", "kf", "momentum", "oracle")   # time histories stay readable with a few lines

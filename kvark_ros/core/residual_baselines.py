@@ -43,7 +43,6 @@ from typing import Any, Callable, Mapping
 import numpy as np
 import scipy.linalg
 import scipy.special
-import yaml
 from sklearn.cluster import KMeans
 from sklearn.exceptions import ConvergenceWarning
 from sklearn.gaussian_process import GaussianProcessRegressor
@@ -51,7 +50,6 @@ from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 from sklearn.neural_network import MLPRegressor
 from threadpoolctl import threadpool_limits
 
-from kvark_ros.core.files import write_atomically
 from kvark_ros.core.residual_model import (
     VARIANCE_FLOOR,
     GMRReference,
@@ -60,9 +58,11 @@ from kvark_ros.core.residual_model import (
     _check_training_data,
     _frozen_float_array,
     freeze_positive_vectors,
+    check_listed_values,
     read_model_header,
     _read_arrays,
     fit_gmr_reference,
+    save_model_pair,
 )
 
 __all__ = [
@@ -288,44 +288,6 @@ def _cholesky(matrix: np.ndarray, what: str) -> np.ndarray:
         raise ResidualModelError(f"{what} is not numerically positive definite ({exc})") from exc
 
 
-def _header_text(header: Mapping[str, Any]) -> str:
-    try:
-        return yaml.safe_dump(dict(header), sort_keys=False)
-    except yaml.YAMLError as exc:
-        raise ValueError(f"metadata must contain plain YAML types only ({exc})") from exc
-
-
-def _save_pair(directory: str | os.PathLike, stem: str, arrays: Mapping[str, np.ndarray],
-               header: Mapping[str, Any]) -> None:
-    """Write directory/<stem>.npz then directory/<stem>.yaml, each atomically (temp + rename).
-
-    The npz is written first, so a crash in between leaves the previous header, which then
-    disagrees with the new arrays and load() refuses the pair instead of mixing them.
-    """
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    text = _header_text(header)
-    write_atomically(directory / f"{stem}.npz", lambda f: np.savez(f, **arrays))
-    write_atomically(directory / f"{stem}.yaml", lambda f: f.write(text.encode()))
-
-
-def _check_listed(yaml_path: Path, npz_path: Path, listed: Any, arrays: Mapping[str, np.ndarray],
-                  keys: tuple[str, ...]) -> None:
-    """The values listed in the YAML header must equal the arrays in the npz (same save)."""
-    if not isinstance(listed, dict):
-        raise ResidualModelError(f"{yaml_path}: missing 'hyperparameters' mapping")
-    for key in keys:
-        try:
-            agrees = np.allclose(np.asarray(listed.get(key), dtype=np.float64), arrays[key],
-                                 rtol=1e-12, atol=0.0)
-        except (TypeError, ValueError):
-            agrees = False
-        if not agrees:
-            raise ResidualModelError(
-                f"{yaml_path}: {key!r} = {listed.get(key)} disagrees with {npz_path} "
-                f"({arrays[key].tolist()}); the files are not from the same save")
-
-
 # --------------------------------------------------------------------------------------------
 # GMR-GP
 # --------------------------------------------------------------------------------------------
@@ -481,7 +443,7 @@ class GMRGPResidualModel(_KernelPredictor):
             "hyperparameters": self.hyper.as_dict(),
             "metadata": dict(self.metadata if metadata is None else metadata),
         }
-        _save_pair(directory, self.name, arrays, header)
+        save_model_pair(directory, self.name, arrays, header)
 
     @classmethod
     def load(cls, directory: str | os.PathLike) -> GMRGPResidualModel:
@@ -497,7 +459,7 @@ class GMRGPResidualModel(_KernelPredictor):
         if has_reference:
             shapes.update(reference_mu=(n, n_sup), reference_sigma2=(n, n_sup))
         arrays = _read_arrays(npz_path, shapes)
-        _check_listed(yaml_path, npz_path, header.get("hyperparameters"), arrays, _GP_HYPER_KEYS)
+        check_listed_values(yaml_path, npz_path, header.get("hyperparameters"), arrays, _GP_HYPER_KEYS)
         try:
             hyper = GPHyperparameters(**{key: arrays[key] for key in _GP_HYPER_KEYS})
             reference = (GMRReference(s=arrays["support"], mu=arrays["reference_mu"],
@@ -688,7 +650,7 @@ class SparseGPResidualModel(_KernelPredictor):
             "hyperparameters": self.hyper.as_dict(),
             "metadata": dict(self.metadata if metadata is None else metadata),
         }
-        _save_pair(directory, self._STEM, arrays, header)
+        save_model_pair(directory, self._STEM, arrays, header)
 
     @classmethod
     def load(cls, directory: str | os.PathLike) -> SparseGPResidualModel:
@@ -705,7 +667,7 @@ class SparseGPResidualModel(_KernelPredictor):
             "inducing": (n, m), "mean_weights": (n, m), "chol_a": (n, m, m)}
         shapes.update({key: (n,) for key in _GP_HYPER_KEYS})
         arrays = _read_arrays(npz_path, shapes)
-        _check_listed(yaml_path, npz_path, header.get("hyperparameters"), arrays, _GP_HYPER_KEYS)
+        check_listed_values(yaml_path, npz_path, header.get("hyperparameters"), arrays, _GP_HYPER_KEYS)
         try:
             hyper = GPHyperparameters(**{key: arrays[key] for key in _GP_HYPER_KEYS})
             return cls(arrays["inducing"], arrays["mean_weights"], arrays["chol_a"], hyper,
@@ -942,7 +904,7 @@ class MLPResidualModel:
             "hyperparameters": {"variance": self.variance.tolist()},
             "metadata": dict(self.metadata if metadata is None else metadata),
         }
-        _save_pair(directory, self._STEM, arrays, header)
+        save_model_pair(directory, self._STEM, arrays, header)
 
     @classmethod
     def load(cls, directory: str | os.PathLike) -> MLPResidualModel:
@@ -968,7 +930,7 @@ class MLPResidualModel:
             shapes[f"intercept_{k}"] = (n, widths[k + 1])
         shapes.update({key: (n,) for key in ("x_mean", "x_scale", "y_mean", "y_scale", "variance")})
         arrays = _read_arrays(npz_path, shapes)
-        _check_listed(yaml_path, npz_path, header.get("hyperparameters"), arrays, ("variance",))
+        check_listed_values(yaml_path, npz_path, header.get("hyperparameters"), arrays, ("variance",))
         n_layers = len(widths) - 1
         try:
             return cls([arrays[f"coef_{k}"] for k in range(n_layers)],

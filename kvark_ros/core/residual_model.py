@@ -41,8 +41,9 @@ __all__ = [
 ]
 
 FORMAT_VERSION = 1
-NPZ_NAME = "kmp.npz"
-YAML_NAME = "kmp.yaml"
+STEM = "kmp"
+NPZ_NAME = f"{STEM}.npz"
+YAML_NAME = f"{STEM}.yaml"
 
 # Smallest predictive variance returned (N²·m²): eq. 23 is a difference of two nearly equal
 # numbers near the data and round-off can push it slightly below zero.
@@ -385,8 +386,6 @@ class KMPResidualModel:
         metadata defaults to self.metadata and must contain plain YAML types only. The npz is
         written first, so a crash in between leaves the previous kmp.yaml.
         """
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
         arrays = {key: getattr(self.reference, key) for key in _REFERENCE_KEYS}
         arrays.update({key: getattr(self.hyper, key) for key in _HYPER_KEYS})
         header = {
@@ -396,12 +395,7 @@ class KMPResidualModel:
             "hyperparameters": {key: getattr(self.hyper, key).tolist() for key in _HYPER_KEYS},
             "metadata": dict(self.metadata if metadata is None else metadata),
         }
-        try:
-            header_text = yaml.safe_dump(header, sort_keys=False)
-        except yaml.YAMLError as exc:
-            raise ValueError(f"metadata must contain plain YAML types only ({exc})") from exc
-        write_atomically(directory / NPZ_NAME, lambda f: np.savez(f, **arrays))
-        write_atomically(directory / YAML_NAME, lambda f: f.write(header_text.encode()))
+        save_model_pair(directory, STEM, arrays, header)
 
     @classmethod
     def load(cls, directory: str | os.PathLike) -> KMPResidualModel:
@@ -414,28 +408,54 @@ class KMPResidualModel:
         directory = Path(directory)
         yaml_path, npz_path = directory / YAML_NAME, directory / NPZ_NAME
         header = read_model_header(yaml_path, ("n_support",))
-        if not isinstance(header.get("hyperparameters"), dict):
-            raise ResidualModelError(f"{yaml_path}: missing 'hyperparameters' mapping")
         shapes = {key: (header["n_joints"], header["n_support"]) for key in _REFERENCE_KEYS}
         shapes.update({key: (header["n_joints"],) for key in _HYPER_KEYS})
         arrays = _read_arrays(npz_path, shapes)
-        for key in _HYPER_KEYS:
-            listed = header["hyperparameters"].get(key)
-            try:
-                agrees = np.allclose(np.asarray(listed, dtype=np.float64), arrays[key],
-                                     rtol=1e-12, atol=0.0)
-            except (TypeError, ValueError):
-                agrees = False
-            if not agrees:
-                raise ResidualModelError(
-                    f"{yaml_path}: hyperparameter {key!r} = {listed} disagrees with {npz_path} "
-                    f"({arrays[key].tolist()}); the files are not from the same save")
+        check_listed_values(yaml_path, npz_path, header.get("hyperparameters"), arrays, _HYPER_KEYS)
         try:
             reference = GMRReference(**{key: arrays[key] for key in _REFERENCE_KEYS})
             hyper = KMPHyperparameters(**{key: arrays[key] for key in _HYPER_KEYS})
             return cls(reference, hyper, metadata=header["metadata"])
         except ResidualModelError as exc:
             raise ResidualModelError(f"{npz_path}: {exc}") from exc
+
+
+def _header_text(header: Mapping[str, Any]) -> str:
+    try:
+        return yaml.safe_dump(dict(header), sort_keys=False)
+    except yaml.YAMLError as exc:
+        raise ValueError(f"metadata must contain plain YAML types only ({exc})") from exc
+
+
+def save_model_pair(directory: str | os.PathLike, stem: str, arrays: Mapping[str, np.ndarray],
+                    header: Mapping[str, Any]) -> None:
+    """Write directory/<stem>.npz then directory/<stem>.yaml, each atomically (temp + rename).
+
+    The npz is written first, so a crash in between leaves the previous header, which then
+    disagrees with the new arrays and load() refuses the pair instead of mixing them.
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    text = _header_text(header)
+    write_atomically(directory / f"{stem}.npz", lambda f: np.savez(f, **arrays))
+    write_atomically(directory / f"{stem}.yaml", lambda f: f.write(text.encode()))
+
+
+def check_listed_values(yaml_path: Path, npz_path: Path, listed: Any, arrays: Mapping[str, np.ndarray],
+                        keys: tuple[str, ...]) -> None:
+    """The values listed in the YAML header must equal the arrays in the npz (same save)."""
+    if not isinstance(listed, dict):
+        raise ResidualModelError(f"{yaml_path}: missing 'hyperparameters' mapping")
+    for key in keys:
+        try:
+            agrees = np.allclose(np.asarray(listed.get(key), dtype=np.float64), arrays[key],
+                                 rtol=1e-12, atol=0.0)
+        except (TypeError, ValueError):
+            agrees = False
+        if not agrees:
+            raise ResidualModelError(
+                f"{yaml_path}: {key!r} = {listed.get(key)} disagrees with {npz_path} "
+                f"({arrays[key].tolist()}); the files are not from the same save")
 
 
 def read_model_header(path: Path, int_keys: tuple[str, ...], model: str | None = None) -> dict[str, Any]:

@@ -17,8 +17,7 @@
    another acceptable first effect; a later selection replaces the kept one when it has a lower
    BIC with no more effects (BIC alone, with correlated samples, lets small spurious effects in:
    a run that trades one look-alike for the right effect ends with fewer of them). Each remaining
-   effect's reported reduction is the held-out gap of
-   all effects but that one against all of them;
+   effect's reported reduction is the held-out gap of all effects but that one against all of them;
 3. writes ``diagnosis.json``, ``augmentation.yaml`` (the accepted effects, loadable by
    ``effects.augmentation_gap``), ``report.md`` and plots.
 """
@@ -50,7 +49,7 @@ MIN_REDUCTION = 0.05     # an effect must cut the held-out gap of its joints by 
 MIN_ABS_REDUCTION = 0.005  # N·m, and by at least this much (filter noise floor)
 DECIMATE_DT = 0.008      # s, sample spacing after smoothing (the filter passes far less than 60 Hz)
 SCREEN_TOP = 4           # candidates refitted jointly per round
-STARTS = 3               # greedy runs, each from another acceptable first effect; the lowest BIC wins
+STARTS = 3               # greedy runs, each from another acceptable first effect (see module docstring)
 
 
 @dataclass
@@ -138,26 +137,20 @@ class _Fitter:
 
 def _screen(name: str, variant: dict, fitter: _Fitter, terms: Sequence[Term], r_he: np.ndarray,
             n: int) -> Term | None:
-    """Candidate joint set of one effect variant: the joints whose held-out gap (per-joint
-    effects) or weighted total held-out gap (coupled effects) drops enough when the effect is
-    added on that joint alone and everything is refitted."""
+    """Candidate joint set of one effect variant: the payload acts on every joint, a coupled effect
+    is screened by ``_screen_coupled``, a per-joint effect keeps the joints whose held-out gap
+    drops enough when it is added on that joint alone and everything is refitted."""
     if name == "payload":
         return Term(name, tuple(range(n)), variant)
     if name not in PER_JOINT:
         return _screen_coupled(name, variant, fitter, terms, n)
     chosen = []
     held_rms = _rmse(r_he)
-    w = fitter.w
     for j in range(n):
         after = _rmse(fitter.fit([*terms, Term(name, (j,), variant)])[3])
-        if name in PER_JOINT:
-            gain = held_rms[j] - after[j]
-            if gain >= MIN_REDUCTION * held_rms[j] and gain >= MIN_ABS_REDUCTION:
-                chosen.append(j)
-        else:
-            before_w, after_w = np.mean(np.square(held_rms * w)), np.mean(np.square(after * w))
-            if after_w < (1.0 - MIN_REDUCTION) ** 2 * before_w and np.max(held_rms - after) >= MIN_ABS_REDUCTION:
-                chosen.append(j)
+        gain = held_rms[j] - after[j]
+        if gain >= MIN_REDUCTION * held_rms[j] and gain >= MIN_ABS_REDUCTION:
+            chosen.append(j)
     return Term(name, tuple(chosen), variant) if chosen else None
 
 
@@ -217,8 +210,8 @@ def _affected(before: np.ndarray, after: np.ndarray) -> np.ndarray:
 
 def _prune(fitter: _Fitter, terms: list[Term], theta: np.ndarray, cov: np.ndarray | None, r_tr: np.ndarray,
            r_he: np.ndarray, bic: float, log: Callable[[str], None]) -> tuple:
-    """Backward pass over the accepted terms (module docstring, step 2), then every remaining
-    term's contribution: (terms, θ, covariance, train and held-out residuals, history)."""
+    """Backward pass over the accepted terms (module docstring, step 2): (terms, θ, covariance,
+    train and held-out residuals, BIC)."""
     terms = list(terms)
     while len(terms) > 1:
         after = _rmse(r_he)
@@ -239,6 +232,11 @@ def _prune(fitter: _Fitter, terms: list[Term], theta: np.ndarray, cov: np.ndarra
         del terms[i]
         theta, cov, r_tr, r_he = fit
         bic = rest_bic
+    return terms, theta, cov, r_tr, r_he, bic
+
+
+def _contributions(fitter: _Fitter, terms: list[Term], r_he: np.ndarray) -> list[dict]:
+    """Each term's share: the held-out gap of all terms but that one against all of them."""
     after = _rmse(r_he)
     history = []
     for i, term in enumerate(terms):
@@ -249,7 +247,7 @@ def _prune(fitter: _Fitter, terms: list[Term], theta: np.ndarray, cov: np.ndarra
         history.append({"affected": joints.tolist(), "gap_reduction": float(red),
                         "held_out_rmse_before": before[joints].tolist(),
                         "held_out_rmse_after": after[joints].tolist()})
-    return terms, theta, cov, r_tr, r_he, history
+    return history
 
 
 def _scored_candidates(fitter: _Fitter, terms: Sequence[Term], r_he: np.ndarray, effects: Sequence[str],
@@ -274,8 +272,8 @@ def _greedy(fitter: _Fitter, effects: Sequence[str], n: int, first_choice: int, 
             log: Callable[[str], None]) -> tuple | None:
     """Forward selection and the backward pass (module docstring, step 2), starting in the first
     round from the acceptable candidate of the ``first_choice``-th distinct effect name (0 = the
-    best candidate); None when the first round has fewer acceptable effects. Returns (terms, θ, covariance, train and held-out
-    residuals, history, BIC)."""
+    best candidate); None when the first round has fewer acceptable effects. Returns (terms, θ,
+    covariance, train and held-out residuals, BIC)."""
     terms: list[Term] = []
     theta, cov, r_tr, r_he = fitter.fit(terms)
     bic = fitter.bic(r_tr, 0)
@@ -322,8 +320,7 @@ def _greedy(fitter: _Fitter, effects: Sequence[str], n: int, first_choice: int, 
             if not terms and first_choice:
                 return None
             break
-    terms, theta, cov, r_tr, r_he, history = _prune(fitter, terms, theta, cov, r_tr, r_he, bic, log)
-    return terms, theta, cov, r_tr, r_he, history, fitter.bic(r_tr, sum(t.size for t in terms))
+    return _prune(fitter, terms, theta, cov, r_tr, r_he, bic, log)
 
 
 def _single_threaded_blas() -> contextlib.AbstractContextManager:
@@ -372,7 +369,8 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
             f"weighted held-out gap {score:.4f}")
         if best is None or (found[-1] < best[-1] and len(found[0]) <= len(best[0])):
             best = found
-    terms, theta, cov, r_tr, r_he, history, bic = best
+    terms, theta, cov, _, r_he, _ = best
+    history = _contributions(fitter, terms, r_he)
     gap_after = _rmse(r_he)
     result_effects, thetas = [], []
     pos = 0

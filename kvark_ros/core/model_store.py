@@ -18,9 +18,9 @@ from typing import Any, Mapping
 
 import yaml
 
-from kvark_ros.core.files import read_yaml
 from kvark_ros import __version__
 from kvark_ros.core.augmentation import Augmentation, AugmentationError, parse_augmentation
+from kvark_ros.core.files import read_yaml
 from kvark_ros.core.observers.base import FilterTuning
 from kvark_ros.core.observers.momentum_observers import MomentumNoise
 from kvark_ros.core.residual_model import KMPResidualModel, ResidualModelError

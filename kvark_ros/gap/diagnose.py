@@ -35,8 +35,8 @@ import numpy as np
 import yaml
 from scipy.optimize import lsq_linear
 
-from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.config import load_config
+from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.gap.effects import (EFFECT_NAMES, MAX_GAIN_ERROR, PER_JOINT, Signals, Term, payload_parameters,
                                    physical_parameters, signals,

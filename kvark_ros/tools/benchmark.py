@@ -16,9 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.augmentation import load_augmentation
 from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, default_config_path, load_config
+from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.model_store import save_model
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.io.alignment import estimator_inputs
@@ -187,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
         results["scenarios"][scenario] = replay(config, trained, bag, out / scenario, observers, plant=plant,
                                                 write_bag=False, log=log)
     if args.augment:
-        results["augmented"] = augmented_run(config, segments, test_bags, out, args.seed, log)
+        results["augmented"] = augmented_run(config, robot, segments, test_bags, out, args.seed, log)
     write_text_atomically(out / "results.json", json.dumps(results, indent=2))
     write_report(out, results, trained.info, args.robot, plan, time.perf_counter() - started)
     for line in acceptance(results["scenarios"]):
@@ -198,11 +198,11 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def augmented_run(config: EstimatorConfig, segments: list, test_bags: Mapping[str, Path], out: Path, seed: int,
-                  log) -> dict[str, Any]:
-    """Diagnose the training recordings, train on the augmented model, replay the test bags with it."""
+def augmented_run(config: EstimatorConfig, nominal: RobotModel, segments: list, test_bags: Mapping[str, Path],
+                  out: Path, seed: int, log) -> dict[str, Any]:
+    """Diagnose the training recordings on the ``nominal`` model, train on the augmented model, replay
+    the test bags with it."""
     from kvark_ros.gap.diagnose import diagnose, write_outputs
-    nominal = RobotModel.from_config(config)
     diagnosis = diagnose(nominal, segments, log=log)
     write_outputs(diagnosis, nominal, out / "diagnosis", config.robot, log=log)
     augmentation = load_augmentation(out / "diagnosis" / "augmentation.yaml", config.joint_names)

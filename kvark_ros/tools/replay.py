@@ -19,9 +19,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, load_config
 from kvark_ros.core.estimator import Estimator
+from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.model_store import TrainedModel, load_model
 from kvark_ros.core.observers import make_observer
 from kvark_ros.core.robot_model import RobotModel, urdf_sha256

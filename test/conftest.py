@@ -8,6 +8,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 from kvark_ros.core.config import load_config
 from kvark_ros.core.robot_model import RobotModel
@@ -17,6 +18,11 @@ STAND_IN = Path(__file__).resolve().parent / "ros_stand_in"
 STAND_IN_MODULES = {"rclpy", "rcl_interfaces", "builtin_interfaces", "std_msgs", "sensor_msgs", "geometry_msgs",
                     "std_srvs", "diagnostic_msgs", "ros_stand_in_core"}
 NODE_MODULE = "kvark_ros.ros.estimator_node"
+
+# One BLAS/OpenMP thread for the whole session (also exported by the Makefile): a sum split over
+# another number of threads rounds differently, and the simulated fixtures must not depend on the
+# machine's core count.
+threadpool_limits(limits=1)
 
 
 @pytest.fixture(scope="session")
@@ -72,3 +78,15 @@ def ros():
         for name in [name for name in sys.modules if ours(name)]:
             del sys.modules[name]
         sys.modules.update(saved)
+
+
+def debounced_margin(stamps: np.ndarray, statistics: np.ndarray, threshold: float, debounce: float) -> float:
+    """Smallest ratio of the contact threshold to the statistic the debounced flag acts on.
+
+    The flag rises only when ``d²`` stays above the threshold for ``debounce`` s, so what must stay
+    below the threshold is, at each sample t, the smallest ``d²`` over [t, t + debounce]. A ratio
+    above 1 means no false flag; how far above says how much room a machine or a release has.
+    """
+    ends = np.searchsorted(stamps, stamps + debounce, side="right")
+    held = np.array([statistics[k:end].min() for k, end in enumerate(ends)])
+    return float(threshold / held.max())

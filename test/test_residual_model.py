@@ -39,7 +39,8 @@ def _hand_model() -> KMPResidualModel:
 
 
 def _direct_kmp(j: int, query: float) -> tuple[float, float]:
-    """Eqs. 21-23 for joint j written out with full matrices and numpy.linalg.inv."""
+    """Eqs. 21-23 for joint j written out with full matrices and numpy.linalg.inv, and the far-field
+    floor σ_f²(1 − c²), c = maxᵢ k(q̇, sᵢ)/σ_f² (KMPResidualModel.predict)."""
     s, mu, sigma = S[j], MU[j], np.diag(SIGMA2[j])
     ell2 = HYPER.length_scale[j] ** 2  # the paper's l
     sf2, lam1, lam2 = HYPER.sigma_f2[j], HYPER.lambda1[j], HYPER.lambda2[j]
@@ -52,7 +53,8 @@ def _direct_kmp(j: int, query: float) -> tuple[float, float]:
     k_star = np.array([k(query, b) for b in s])
     mean = k_star @ np.linalg.inv(gram + lam1 * sigma) @ mu
     var = n_sup / lam2 * (k(query, query) - k_star @ np.linalg.inv(gram + lam2 * sigma) @ k_star)
-    return mean, var
+    nearest = k_star.max() / sf2
+    return mean, max(var, sf2 * (1.0 - nearest ** 2))  # eq. 23, then the far-field floor
 
 
 @pytest.mark.parametrize("query", [
@@ -68,6 +70,17 @@ def test_predict_matches_direct_evaluation_of_eqs_22_23(query: np.ndarray) -> No
         expected_mean, expected_var = _direct_kmp(j, query[j])
         np.testing.assert_allclose(mean[j], expected_mean, rtol=1e-9)
         np.testing.assert_allclose(var[j], expected_var, rtol=1e-9)
+
+
+def test_far_field_floor_is_inactive_on_the_support_points() -> None:
+    """On a support point c = 1, the floor is 0 and eq. 23 alone gives the variance."""
+    model = _hand_model()
+    _, on_support = model.predict(S[:, 2].copy())
+    for j in range(2):
+        s, sigma, sf2, lam2 = S[j], np.diag(SIGMA2[j]), HYPER.sigma_f2[j], HYPER.lambda2[j]
+        gram = sf2 * np.exp(-0.5 * (s[:, None] - s[None, :]) ** 2 / HYPER.length_scale[j] ** 2)
+        eq23 = len(s) / lam2 * (sf2 - gram[2] @ np.linalg.solve(gram + lam2 * sigma, gram[2]))
+        np.testing.assert_allclose(on_support[j], eq23, rtol=1e-9)
 
 
 def test_predict_batch_agrees_with_predict() -> None:
@@ -93,7 +106,8 @@ def test_far_from_data_variance_is_asymptote_and_mean_vanishes() -> None:
     far = S.max(axis=1) + 100.0 * HYPER.length_scale
     for query in (far, -far):
         mean, var = model.predict(query)
-        np.testing.assert_allclose(var, 5 * HYPER.sigma_f2 / HYPER.lambda2, rtol=1e-6)
+        # eq. 23's asymptote N σ_f²/λ₂, unless the far-field floor σ_f² is above it
+        np.testing.assert_allclose(var, np.maximum(5 / HYPER.lambda2, 1.0) * HYPER.sigma_f2, rtol=1e-6)
         np.testing.assert_allclose(mean, 0.0, atol=1e-12)
 
 

@@ -1,0 +1,87 @@
+"""The contact test (ROS-free): threshold, debounce, covariance, and no false flag in free motion."""
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from conftest import debounced_margin
+from kvark_ros.core.estimator import Estimator
+from kvark_ros.core.model_store import load_model
+from kvark_ros.io.alignment import estimator_inputs
+from kvark_ros.io.bag import read_run
+from kvark_ros.ros.contact import ContactDetector, contact_covariance
+
+ROOT = Path(__file__).resolve().parents[1]
+AFTER_CONTACT = 0.2      # s after the last pushed sample before motion counts as contact-free again
+PUSHED = 0.5             # N·m: a true external torque above this on any joint is contact
+
+
+def test_contact_threshold_and_debounce():
+    detector = ContactDetector(7, 0.99, 0.02)
+    assert detector.threshold == pytest.approx(chi2.ppf(0.99, 7))
+    cov = np.eye(7)
+    quiet, loud = np.zeros(7), np.full(7, 3.0)           # statistic 0 and 63
+    flags = [detector.update(0.002 * k, loud if 10 <= k < 40 else quiet, cov) for k in range(60)]
+    rises, falls = flags.index(True), 40 + flags[40:].index(False)
+    assert 0.002 * (rises - 10) == pytest.approx(0.02) and 0.002 * (falls - 40) == pytest.approx(0.02)
+    assert all(flags[rises:falls]) and not any(flags[:rises]) and not any(flags[falls:])
+    brief = [detector.update(1.0 + 0.002 * k, loud if k < 5 else quiet, cov) for k in range(20)]
+    assert not any(brief), "shorter than the debounce: no flag"
+    detector.configure(0.99, 0.0)
+    assert detector.update(2.0, loud, cov) and not detector.update(2.002, quiet, cov)
+
+
+def test_contact_invalid_covariance_holds_the_flag():
+    detector = ContactDetector(2, 0.9, 0.0)
+    assert detector.update(0.0, np.array([5.0, 0.0]), np.eye(2))
+    assert detector.update(0.002, np.zeros(2), np.array([[1.0, 2.0], [2.0, 1.0]]))        # indefinite
+    assert detector.update(0.004, np.zeros(2), np.full((2, 2), np.nan))
+    assert detector.invalid_covariances == 2
+
+
+def test_contact_covariance_adds_the_residual_uncertainty():
+    P = np.diag([1.0, 2.0])
+    mean, var = np.array([0.5, -1.0]), np.array([0.1, 0.2])
+    assert np.allclose(contact_covariance(P, mean, var, True), np.diag([1.1, 2.2]))
+    assert np.allclose(contact_covariance(None, mean, var, False), np.diag([0.35, 1.2]))
+    assert np.allclose(P, np.diag([1.0, 2.0])), "P is not modified"
+
+
+@pytest.mark.parametrize("bag", ["panda_excitation_1", "panda_excitation_2", "panda_contact", "panda_collision"])
+def test_no_false_contact_flag_in_the_contact_free_part_of_the_committed_bags(panda_config, bag):
+    """models/panda with the default observer over each committed bag that has contact-free motion.
+
+    Contact-free: before the first sample whose true external torque exceeds PUSHED on a joint and
+    from AFTER_CONTACT s after the last (the payload bag carries its load throughout: none). On
+    failure the margin (threshold over the statistic the debounced flag acts on) says how far off.
+    """
+    config = replace(panda_config, model_dir=str(ROOT / "models" / "panda"))
+    trained = load_model(ROOT / "models" / "panda", config.joint_names)
+    run = read_run(ROOT / "bags" / bag, config.joint_names)
+    inputs = estimator_inputs(run, path=bag)
+    estimator = Estimator.from_config(config, trained)
+    detector = ContactDetector(len(config.joint_names), config.contact_confidence, config.contact_debounce)
+    stamps, statistics, flags = [], [], []
+    for k in range(len(inputs)):
+        estimate = estimator.step(inputs.stamp[k], inputs.q[k], inputs.qd[k], inputs.tau_m[k])
+        if estimate is None:
+            continue
+        mean, variance = trained.residual.predict(inputs.qd[k])
+        covariance = contact_covariance(estimate.tau_cov, mean, variance, estimator.observer.uses_residual_model)
+        flags.append(detector.update(inputs.stamp[k], estimate.tau_ext, covariance))
+        stamps.append(inputs.stamp[k])
+        statistics.append(detector.statistic)
+    stamps, statistics, flags = np.array(stamps), np.array(statistics), np.array(flags)
+    pushed = np.abs(run.external_torque.effort).max(axis=1) > PUSHED
+    free = np.ones(len(stamps), dtype=bool)
+    if pushed.any():
+        touched = run.external_torque.stamp[pushed]
+        free = (stamps < touched[0]) | (stamps > touched[-1] + AFTER_CONTACT)
+    assert free.sum() > 400, "at least 0.8 s of contact-free motion to judge"
+    margin = debounced_margin(stamps[free], statistics[free], detector.threshold, config.contact_debounce)
+    assert not flags[free].any(), f"false contact flag (threshold/statistic margin {margin:.3f})"
+    assert margin > 1.0

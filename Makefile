@@ -1,11 +1,20 @@
-# kvark_ros developer entry points. Each target creates .venv on first use and installs
-# the package (editable, with the simulator and test extras) into it.
+# kvark_ros developer entry points. Each target creates .venv on first use and installs into it
+# the exact versions of requirements-lock.txt, then the package itself (editable, no dependency
+# resolution), so every machine runs what the lock says. `make lock` refreshes the lock;
+# `make test-newest` runs the suite on the newest releases instead.
 PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.kvark-installed
+LOCK   := requirements-lock.txt
+PIP_VERSION := 26.3
+UV_VERSION  := 0.13.9
+# One thread per BLAS/OpenMP pool: figures and tests do not depend on the machine's core count.
+export OMP_NUM_THREADS := 1
+export OPENBLAS_NUM_THREADS := 1
+export MKL_NUM_THREADS := 1
 
-.PHONY: demo test bench bags model benchmark reliability clean
+.PHONY: demo test test-newest lock versions bench bags model benchmark reliability clean
 
 KVARK   := $(BIN)/kvark
 CONFIG  := config/panda.yaml
@@ -13,11 +22,13 @@ PLANT   := kvark_ros/sim/plants/panda_default.yaml
 SCENES  := payload contact collision
 RESULTS ?= results
 
-$(STAMP): setup.py setup.cfg
+$(STAMP): setup.py setup.cfg $(LOCK)
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 10) else "kvark_ros needs Python 3.10 or newer")'
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[sim,test]'
+	$(BIN)/python -m pip install --quiet pip==$(PIP_VERSION)
+	$(BIN)/python -m pip install --quiet -r $(LOCK)
+	$(BIN)/python -m pip install --quiet --no-deps -e .
+	$(BIN)/python -m pip check
 	touch $(STAMP)
 
 ## demo: the main job on a laptop (no robot, no ROS): committed bags -> diagnose the model gap ->
@@ -54,13 +65,37 @@ reliability: $(STAMP)
 benchmark: $(STAMP)
 	$(KVARK) benchmark --robot panda --out $(RESULTS)/benchmark
 
-## test: the whole test suite
+## test: the whole test suite, on the locked versions
 test: $(STAMP)
+	@$(BIN)/python test/versions.py
 	$(BIN)/python -m pytest -q
+
+## versions: the interpreter and the installed versions the figures depend on
+versions: $(STAMP)
+	@$(BIN)/python test/versions.py
+
+## lock: refresh requirements-lock.txt (newest releases that install on Python 3.10-3.12 as one set;
+## pytest stays below 9 because ROS 2 Jazzy's launch_testing plugin fails to load under pytest 9),
+## reinstall .venv from it and run the suite
+lock:
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet uv==$(UV_VERSION)
+	$(BIN)/uv pip compile setup.cfg --extra sim --extra test --universal --python-version 3.10 \
+	  --fork-strategy fewest --upgrade --quiet -o $(LOCK)
+	rm -f $(STAMP)
+	$(MAKE) test
+
+## test-newest: the suite on the newest releases the package's ranges allow (no lock), in .venv-newest
+test-newest:
+	test -x .venv-newest/bin/python || $(PYTHON) -m venv .venv-newest
+	.venv-newest/bin/python -m pip install --quiet --upgrade pip
+	.venv-newest/bin/python -m pip install --quiet --upgrade --upgrade-strategy eager -e '.[sim,test]'
+	@.venv-newest/bin/python test/versions.py
+	.venv-newest/bin/python -m pytest -q
 
 ## bench: per-step latency of every observer
 bench: $(STAMP)
 	$(BIN)/kvark bench --robot panda --observer all
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache
+	rm -rf $(VENV) .venv-newest build *.egg-info .pytest_cache

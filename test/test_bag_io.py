@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kvark_ros.io.bag import (
+from kvark_ros.io import (
     BagError,
     BagWriter,
     CommandSeries,

@@ -1,52 +1,69 @@
-"""Turn a recorded run into Estimator inputs: one (stamp, q, q̇, τ_m) per joint-state sample.
+"""Turn a recorded run into Estimator inputs: one (stamp, q, q̇, τ_m) per paired joint-state sample.
 
-Each joint state is paired with the newest command issued at or before its stamp (the command
-computed from that state is logged with the same stamp by ros2_control-style loops and by our
-simulator), and no older than ``max_command_age``. Samples without a fresh command are dropped
-and counted. A bag without commands falls back to the measured effort in ``joint_states``.
+The pairing is the live node's (``kvark_ros.core.pairing.StreamPairer``), fed the run's messages in
+time order: joint states at their header stamps, commands at their log time, a command after the
+state it shares a time with. A command therefore answers the newest joint state stamped at or
+before it, and a state without one takes the newest earlier command no older than
+``max_command_age``; the others are dropped and counted. A bag without commands falls back to the
+measured effort in ``joint_states``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
-from kvark_ros.io.bag import BagError, RecordedRun
+from kvark_ros.core.inputs import EstimatorInputs
+from kvark_ros.core.pairing import RESET, Sample, StreamPairer
+from kvark_ros.io import BagError, RecordedRun, read_run
 
-STAMP_TOLERANCE = 1e-4   # s: a command logged this much after the state still pairs with it
 
-
-@dataclass(frozen=True)
-class EstimatorInputs:
-    """stamp (T,) s; q (T, n) rad; qd (T, n) rad/s; tau_m (T, n) N·m; what τ_m came from; drops."""
-
-    stamp: np.ndarray
-    q: np.ndarray
-    qd: np.ndarray
-    tau_m: np.ndarray
-    torque_source: str
-    dropped: int
-
-    def __len__(self) -> int:
-        return len(self.stamp)
+def _paired(run: RecordedRun, max_command_age: float) -> list[Sample]:
+    """The run's states and commands through the streaming pairer, in time order (module docstring)."""
+    states, commands = run.joint_states, run.commands
+    pairer = StreamPairer(max_command_age, max_gap=np.inf)
+    # Events in time order; at equal times the state (kind 0) before its command (kind 1).
+    keys = np.concatenate([states.stamp, commands.stamp])
+    kinds = np.concatenate([np.zeros(len(states.stamp), dtype=np.int8), np.ones(len(commands.stamp), dtype=np.int8)])
+    rows = np.concatenate([np.arange(len(states.stamp)), np.arange(len(commands.stamp))])
+    order = np.lexsort((kinds, keys))
+    samples: list[Sample] = []
+    for event in order:
+        row, key = rows[event], float(keys[event])
+        if kinds[event] == 0:
+            done = pairer.state(key, Sample(key, states.position[row], states.velocity[row], None))
+        else:
+            done = pairer.command(key, commands.effort[row], stamp=key)
+        samples.extend(sample for sample in done if sample is not RESET)
+    samples.extend(pairer.flush())
+    return samples
 
 
 def estimator_inputs(run: RecordedRun, max_command_age: float = 0.01, path: str = "bag") -> EstimatorInputs:
     """Pair joint states with commands (see module docstring)."""
     states = run.joint_states
     if run.commands is not None and len(run.commands.stamp) > 0:
-        commands = run.commands
-        index = np.searchsorted(commands.stamp, states.stamp + STAMP_TOLERANCE, side="right") - 1
-        fresh = index >= 0
-        fresh[fresh] &= states.stamp[fresh] - commands.stamp[index[fresh]] <= max_command_age
-        tau_m = commands.effort[np.maximum(index, 0)]
-        source = "effort_commands"
-    else:
-        fresh = np.isfinite(states.effort).all(axis=1)
-        tau_m = states.effort
-        source = "joint_states.effort"
-        if not fresh.any():
-            raise BagError(f"{path}: no effort commands and no measured effort in joint_states; "
-                           "record the commanded torque topic (effort_commands)")
+        samples = _paired(run, max_command_age)
+        n = states.position.shape[1]
+        stamp = np.array([s.stamp for s in samples], dtype=np.float64)
+        q, qd, tau_m = (np.array([getattr(s, name) for s in samples], dtype=np.float64).reshape(-1, n)
+                        for name in ("q", "qd", "tau_m"))
+        return EstimatorInputs(stamp, q, qd, tau_m, "effort_commands", len(states.stamp) - len(samples))
+    fresh = np.isfinite(states.effort).all(axis=1)
+    if not fresh.any():
+        raise BagError(f"{path}: no effort commands and no measured effort in joint_states; "
+                       "record the commanded torque topic (effort_commands)")
     return EstimatorInputs(states.stamp[fresh], states.position[fresh], states.velocity[fresh],
-                           tau_m[fresh], source, int((~fresh).sum()))
+                           states.effort[fresh], "joint_states.effort", int((~fresh).sum()))
+
+
+def load_recordings(bags: Sequence[str], joint_names: Sequence[str], max_command_age: float,
+                    tag: str) -> list[EstimatorInputs]:
+    """Estimator inputs of every bag, with one status line each (train and diagnose read bags this way)."""
+    segments = []
+    for bag in bags:
+        inputs = estimator_inputs(read_run(bag, tuple(joint_names)), max_command_age, path=str(bag))
+        print(f"[{tag}] {bag}: {len(inputs)} samples (τ_m from {inputs.torque_source}, "
+              f"{inputs.dropped} dropped)", flush=True)
+        segments.append(inputs)
+    return segments

@@ -1,0 +1,31 @@
+"""Private pieces shared by the bag reader and writer.
+
+Path and array types, the message type names a run uses, nanoseconds per
+second (bags store integer nanosecond stamps) and the one typestore.
+"""
+
+from __future__ import annotations
+
+import os
+from functools import cache
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from rosbags.typesys import Stores, get_typestore
+
+PathLike = str | os.PathLike[str]
+FloatArray = npt.NDArray[np.float64]
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+FLOAT64_ARRAY = "std_msgs/msg/Float64MultiArray"
+WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
+BOOL = "std_msgs/msg/Bool"
+
+_NS = 1_000_000_000
+
+
+@cache
+def _typestore() -> Any:
+    """The single Jazzy typestore: message classes, CDR (de)serialisation."""
+    return get_typestore(Stores.ROS2_JAZZY)

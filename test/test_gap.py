@@ -16,8 +16,8 @@ from kvark_ros.core.robot_model import RobotModel  # noqa: E402
 from kvark_ros.gap import diagnose as gap_cli  # noqa: E402
 from kvark_ros.gap.diagnose import diagnose, write_outputs  # noqa: E402
 from kvark_ros.gap.effects import EFFECT_NAMES, augmentation_gap  # noqa: E402
+from kvark_ros.io import write_run  # noqa: E402
 from kvark_ros.io.alignment import estimator_inputs  # noqa: E402
-from kvark_ros.io.bag import write_run  # noqa: E402
 from kvark_ros.sim.scenarios import simulate  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -36,8 +36,7 @@ from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension  # noqa: E
 from kvark_ros.core.config import load_config  # noqa: E402
 from kvark_ros.core.model_store import save_model  # noqa: E402
 from kvark_ros.core.robot_model import RobotModel  # noqa: E402
-from kvark_ros.tools.bench import train_synthetic  # noqa: E402
-from kvark_ros.tools.synthetic import synthetic_stream  # noqa: E402
+from kvark_ros.tools.synthetic import synthetic_stream, train_synthetic  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "config" / "panda.yaml"

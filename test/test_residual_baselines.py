@@ -1,4 +1,4 @@
-"""Tests of the learned residual-torque baselines (kvark_ros.core.residual_baselines):
+"""Tests of the learned residual-torque baselines (kvark_ros.core.residual.gp, .mlp):
 GMR-GP, sparse GP (GPADKF), MLP (NNADKF) and hyperparameters_from_gp for KMP."""
 
 from __future__ import annotations
@@ -10,19 +10,18 @@ import pytest
 import yaml
 from sklearn.neural_network import MLPRegressor
 
-from kvark_ros.core import residual_baselines as rb
-from kvark_ros.core.residual_baselines import (
+from kvark_ros.core.residual import (
     GMRGPResidualModel,
     GPHyperparameters,
+    KMPResidualModel,
     MLPResidualModel,
+    ResidualModelError,
     SparseGPResidualModel,
+    default_hyperparameters,
     hyperparameters_from_gp,
 )
-from kvark_ros.core.residual_model import (
-    KMPResidualModel,
-    ResidualModelError,
-    default_hyperparameters,
-)
+from kvark_ros.core.residual import gp as rb
+from kvark_ros.core.residual import sparse_gp
 
 N_JOINTS = 3
 NOISE_STD = 0.05  # N·m
@@ -162,7 +161,7 @@ def _se(a: np.ndarray, b: np.ndarray, ls: float, sf2: float) -> np.ndarray:
 
 def test_gmr_gp_equals_exact_gp_on_the_repeated_samples() -> None:
     """The collapsed model (one ȳ_i per support point, noise σn²/m) must equal the exact GP on
-    all N·m samples with noise σn² (DESIGN: the paper's GP trains on sampled GMR data)."""
+    all N·m samples with noise σn² (docs/method.md §5.2: the paper's GP trains on sampled GMR data)."""
     rng = np.random.default_rng(3)
     m = 4
     support = np.array([np.linspace(-1.0, 1.0, 7), np.linspace(-0.4, 0.6, 7)])
@@ -193,7 +192,7 @@ def test_sparse_gp_equals_direct_formula(approximation) -> None:
     z = np.linspace(-1.0, 1.0, 8)
     fit = rb._SEFit(length_scale=0.3, sigma_f2=0.9, noise_var=0.01,
                     log_marginal_likelihood=0.0, length_scale_at_lower_bound=False)
-    c, chol_a = rb._sparse_factors(x, y, z, fit, approximation)
+    c, chol_a = sparse_gp._sparse_factors(x, y, z, fit, approximation)
     hyper = GPHyperparameters(length_scale=[0.3], sigma_f2=[0.9], noise_var=[0.01])
     model = SparseGPResidualModel(z[None], c[None], chol_a[None], hyper, approximation)
     kmm = _se(z, z, 0.3, 0.9) + rb.KERNEL_JITTER_REL * 0.9 * np.eye(8)

@@ -1,4 +1,4 @@
-"""Tests of the GMM/GMR/KMP residual-torque model (kvark_ros.core.residual_model)."""
+"""Tests of the GMM/GMR/KMP residual-torque model (kvark_ros.core.residual.kmp)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from kvark_ros.core import residual_model as rm
-from kvark_ros.core.residual_model import (
+from kvark_ros.core.residual import (
     GMRReference,
     KMPHyperparameters,
     KMPResidualModel,
@@ -17,6 +16,7 @@ from kvark_ros.core.residual_model import (
     default_hyperparameters,
     fit_gmr_reference,
 )
+from kvark_ros.core.residual import kmp as rm
 
 # Hand-built two-joint reference with N = 5 support points; every per-joint quantity differs
 # between the joints so that a mix-up of joints shows.

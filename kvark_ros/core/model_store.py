@@ -23,7 +23,7 @@ from kvark_ros.core.augmentation import Augmentation, AugmentationError, parse_a
 from kvark_ros.core.files import read_yaml
 from kvark_ros.core.observers.base import FilterTuning
 from kvark_ros.core.observers.momentum_observers import MomentumNoise
-from kvark_ros.core.residual_model import KMPResidualModel, ResidualModelError
+from kvark_ros.core.residual import LEARNED_BASELINES, KMPResidualModel, ResidualModelError
 
 MODEL_FILE = "model.yaml"
 AUGMENTATION_FILE = "augmentation.yaml"
@@ -49,12 +49,6 @@ class TrainedModel:
     baseline_tunings: Mapping[str, FilterTuning] = field(default_factory=dict)
     momentum_noise: MomentumNoise | None = None
     augmentation: Augmentation | None = None
-
-
-def _baseline_classes() -> dict[str, type]:
-    """Observer name -> residual model class of the learned baselines (imported on demand)."""
-    from kvark_ros.core.residual_baselines import GMRGPResidualModel, MLPResidualModel, SparseGPResidualModel
-    return {"gmr_gp": GMRGPResidualModel, "gpadkf": SparseGPResidualModel, "nnadkf": MLPResidualModel}
 
 
 def save_model(directory: str | os.PathLike, model: TrainedModel) -> None:
@@ -128,11 +122,10 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
         raise ResidualModelError(f"{path}: trained for another URDF (sha256 {trained_urdf[:12]}…, the config's is "
                                  f"{urdf_sha256[:12]}…); retrain with `kvark train` for this robot model")
     residual = KMPResidualModel.load(directory)
-    classes = _baseline_classes() if baseline_tunings else {}
-    unknown = sorted(set(baseline_tunings) - set(classes))
+    unknown = sorted(set(baseline_tunings) - set(LEARNED_BASELINES))
     if unknown:
         raise ResidualModelError(f"{path}: unknown baseline '{unknown[0]}'; retrain the model")
-    baselines = {name: classes[name].load(directory) for name in baseline_tunings}
+    baselines = {name: LEARNED_BASELINES[name].load(directory) for name in baseline_tunings}
     augmentation = _load_augmentation(Path(directory), names, document.get("augmentation_sha256"))
     sizes = {residual.n_joints, len(tuning.process_noise_density)}
     sizes |= {model.n_joints for model in baselines.values()}

@@ -20,23 +20,20 @@ import numpy as np
 from scipy.ndimage import uniform_filter1d
 
 from kvark_ros.core.observers.base import FilterTuning
-from kvark_ros.core.robot_model import RobotModel
 
 VARIANCE_FLOOR = 1e-8          # N²·m², keeps R positive on noise-free (synthetic) data
 WHITE_WINDOW = 0.05            # s, moving average that separates white noise from slow error
 TIME_CONSTANTS = np.geomspace(5.0, 0.002, 40)   # s, candidate A1 time constants (q = R t_s / T²)
 
 
-def virtual_measurements(robot: RobotModel, residual_mean: np.ndarray | None, stamp: np.ndarray,
-                         q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> np.ndarray:
+def virtual_measurements(momentum: np.ndarray, inputs: np.ndarray, stamp: np.ndarray,
+                         residual_mean: np.ndarray | None) -> np.ndarray:
     """``y_k = (p_k − p_{k−1})/t_s − u_{k−1} + μ_*(q̇_k)`` for k ≥ 1, shape (T−1, n), N·m.
 
-    ``residual_mean`` (T, n) is the residual model's mean along the samples (``None``: left out).
+    ``momentum`` p (T, n) N·m·s and ``inputs`` u (T, n) N·m are the robot model's momentum terms
+    along the samples (eqs. 5, 7; ``RobotModel.momentum_terms``), ``stamp`` (T,) s, and
+    ``residual_mean`` (T, n) the residual model's mean along the samples (``None``: left out).
     """
-    momentum = np.empty_like(q)
-    inputs = np.empty_like(q)
-    for k in range(len(stamp)):
-        momentum[k], inputs[k] = robot.momentum_terms(q[k], qd[k], tau_m[k])
     y = np.diff(momentum, axis=0) / np.diff(stamp)[:, None] - inputs[:-1]
     if residual_mean is not None:
         y += residual_mean[1:]

@@ -24,7 +24,6 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import time
 from dataclasses import dataclass
@@ -37,12 +36,22 @@ from scipy.optimize import lsq_linear
 
 from kvark_ros.core.config import load_config
 from kvark_ros.core.files import write_text_atomically
+from kvark_ros.core.inputs import EstimatorInputs
+from kvark_ros.core.linalg import single_threaded_blas
 from kvark_ros.core.robot_model import RobotModel
-from kvark_ros.gap.effects import (EFFECT_NAMES, MAX_GAIN_ERROR, PER_JOINT, Signals, Term, payload_parameters,
-                                   physical_parameters, signals,
-                                   variants)
-from kvark_ros.io.alignment import EstimatorInputs
-from kvark_ros.tools.train import SAVGOL_WINDOW, load_recordings, smoothed_signals
+from kvark_ros.core.training import SAVGOL_WINDOW, smoothed_signals
+from kvark_ros.gap.effects import (
+    EFFECT_NAMES,
+    MAX_GAIN_ERROR,
+    PER_JOINT,
+    Signals,
+    Term,
+    payload_parameters,
+    physical_parameters,
+    signals,
+    variants,
+)
+from kvark_ros.io.alignment import load_recordings
 
 HOLDOUT = 0.3            # share of every recording (its end) held out
 MIN_REDUCTION = 0.05     # an effect must cut the held-out gap of its joints by ≥ 5 %
@@ -323,21 +332,10 @@ def _greedy(fitter: _Fitter, effects: Sequence[str], n: int, first_choice: int, 
     return _prune(fitter, terms, theta, cov, r_tr, r_he, bic, log)
 
 
-def _single_threaded_blas() -> contextlib.AbstractContextManager:
-    """BLAS limited to one thread: the selection solves hundreds of small least-squares problems
-    (thousands of rows × tens of columns), which threads do not speed up; on a busy machine their
-    synchronisation made each QR 10-100× slower."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:      # pragma: no cover - threadpoolctl comes with scikit-learn
-        return contextlib.nullcontext()
-    return threadpool_limits(1)
-
-
 def diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float = HOLDOUT,
              effects: Sequence[str] = EFFECT_NAMES, log: Callable[[str], None] = print) -> Diagnosis:
     """Greedy selection of named effects explaining the gap (see module docstring)."""
-    with _single_threaded_blas():
+    with single_threaded_blas():  # hundreds of small least-squares fits
         return _diagnose(robot, segments, holdout, effects, log)
 
 
@@ -507,7 +505,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     robot = RobotModel.from_config(config)
-    segments = load_recordings(config, args.bags, "diagnose")
+    segments = load_recordings(args.bags, config.joint_names, config.input.command_max_age, "diagnose")
     log = lambda line: print(line, flush=True)   # noqa: E731
     diag = diagnose(robot, segments, args.holdout, log=log)
     write_outputs(diag, robot, Path(args.out), config.robot, plots=not args.no_plots, log=log)

@@ -162,10 +162,6 @@ def variants(name: str) -> list[dict[str, float]]:
     return [{}]
 
 
-def _cov_block(cov: np.ndarray | None, sl: slice) -> np.ndarray | None:
-    return None if cov is None else cov[sl, sl]
-
-
 def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None) -> tuple[dict, dict]:
     """Parameters in physical units and their 95 % half-widths (delta method for derived ones)."""
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)) if cov is not None else np.full(len(theta), np.nan)

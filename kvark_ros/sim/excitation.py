@@ -21,8 +21,8 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import OptimizeResult, differential_evolution
 from scipy.stats import qmc
-from threadpoolctl import threadpool_limits
 
+from kvark_ros.core.linalg import single_threaded_blas
 from kvark_ros.sim.robots import RobotSetup
 
 FloatArray = npt.NDArray[np.float64]
@@ -251,9 +251,7 @@ def optimise_excitation(limits: ExcitationLimits, duration: float, seed: int | n
     initial_best = float(objective.scaled_logdet(init.T).max())
     # High crossover (0.9): the harmonics of all joints interact in the log-det, so trial vectors
     # that change many coefficients at once improve it faster (about twice SciPy's default 0.7).
-    # One BLAS thread: the products are small, and threaded OpenBLAS on a busy machine was
-    # measured 50x slower on them.
-    with threadpool_limits(limits=1, user_api="blas"):
+    with single_threaded_blas():                    # small products: one BLAS thread is faster
         result = differential_evolution(objective, bounds, maxiter=generations, init=init, rng=rng,
                                         recombination=0.9, vectorized=True, updating="deferred",
                                         polish=False, tol=0.0)

@@ -13,17 +13,14 @@ import time
 
 import numpy as np
 
-from kvark_ros.core.config import OBSERVER_NAMES, default_config_path, load_config
+from kvark_ros.core.config import OBSERVER_NAMES, default_config_path, load_config, parse_observers
 from kvark_ros.core.estimator import Estimator
-from kvark_ros.core.model_store import TrainedModel
 from kvark_ros.core.observers import LEARNED_BASELINE_VARIANTS, make_observer
 from kvark_ros.core.robot_model import RobotModel
-from kvark_ros.io.alignment import EstimatorInputs
-from kvark_ros.tools.train import train_model
+from kvark_ros.tools.synthetic import step_torque, synthetic_stream, train_synthetic
 
 WARM_UP_STEPS = 500
 BENCH_OBSERVERS = tuple(name for name in OBSERVER_NAMES if name != "oracle")   # the oracle needs a plant file
-from kvark_ros.tools.synthetic import step_torque, synthetic_stream
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -43,11 +40,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    names = BENCH_OBSERVERS if args.observer == "all" else tuple(args.observer.split(","))
-    unknown = [name for name in names if name not in BENCH_OBSERVERS]
-    if unknown:
-        raise SystemExit(f"kvark bench: unknown observer {unknown[0]!r}; choose from {', '.join(BENCH_OBSERVERS)} "
-                         "or all")
+    names = parse_observers(args.observer)
+    if "oracle" in names:
+        raise SystemExit("kvark bench: the oracle needs the simulator's plant file; benchmark it with kvark replay "
+                         "--plant FILE")
     if args.duration <= 0:
         raise SystemExit("kvark bench: --duration must be positive")
     config = load_config(args.config or default_config_path(args.robot))
@@ -60,10 +56,10 @@ def run(args: argparse.Namespace) -> int:
     results = {}
     print(f"{'observer':<12} {'steps':>6} {'p50 µs':>8} {'p99 µs':>8} {'max µs':>8} {'RMSE N·m':>9}")
     for name in names:
-        warm_up = Estimator(config, robot, make_observer(name, trained, config))
+        warm_up = Estimator(config, robot, make_observer(name, trained, config.filter))
         for k in range(min(WARM_UP_STEPS, len(stream.stamp))):   # caches and allocator settle, untimed
             warm_up.step(stream.stamp[k], stream.q[k], stream.qd[k], stream.tau_m[k])
-        estimator = Estimator(config, robot, make_observer(name, trained, config))
+        estimator = Estimator(config, robot, make_observer(name, trained, config.filter))
         latency, error = time_estimator(estimator, stream)
         results[name] = {"steps": len(latency), "p50_us": round(float(np.percentile(latency, 50)), 2),
                          "p99_us": round(float(np.percentile(latency, 99)), 2),
@@ -76,17 +72,6 @@ def run(args: argparse.Namespace) -> int:
                "p99_us": first["p99_us"], "observers": results}
     print(json.dumps(summary))
     return 0
-
-
-def train_synthetic(robot: RobotModel, robot_name: str, seed: int = 0, duration: float = 20.0,
-                    baselines: bool = True) -> TrainedModel:
-    """The trainer of ``kvark train``, on two synthetic contact-free streams instead of bags."""
-    segments = []
-    for offset in range(2):
-        stream = synthetic_stream(robot, duration / 2, seed=seed + 1000 * offset)
-        segments.append(EstimatorInputs(stream.stamp, stream.q, stream.qd, stream.tau_m, "synthetic", 0))
-    return train_model(robot, robot_name, segments, baselines=baselines, seed=seed, log=lambda _line: None,
-                       info={"source": "synthetic stream"})
 
 
 def time_estimator(estimator: Estimator, stream) -> tuple[np.ndarray, float]:

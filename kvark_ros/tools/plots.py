@@ -10,9 +10,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (backend first: no display on robots or CI)
 import numpy as np  # noqa: E402
 
+from kvark_ros.core.inputs import EstimatorInputs  # noqa: E402
 from kvark_ros.core.model_store import TrainedModel  # noqa: E402
 from kvark_ros.core.robot_model import RobotModel  # noqa: E402
-from kvark_ros.io.alignment import EstimatorInputs  # noqa: E402
 
 MAX_POINTS = 4000   # scatter points per joint, so figures stay light
 
@@ -29,7 +29,7 @@ def _grid(n: int) -> tuple[plt.Figure, np.ndarray]:
 def plot_training(robot: RobotModel, trained: TrainedModel, segments: Sequence[EstimatorInputs],
                   out: Path) -> list[Path]:
     """Residual torque against velocity with each model's mean ± 2σ, one panel per joint."""
-    from kvark_ros.tools.train import training_data
+    from kvark_ros.core.training import training_data
     data = training_data(robot, segments)
     rng = np.random.default_rng(0)
     pick = rng.choice(len(data.qd), size=min(MAX_POINTS, len(data.qd)), replace=False)

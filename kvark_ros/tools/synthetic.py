@@ -1,9 +1,10 @@
 """A synthetic arm stream with known friction and external torque, from the pinocchio model alone.
 
-Used by ``kvark bench`` and the tests: the joint trajectory is prescribed (sums of sines), and
-the commanded torque follows from the dynamics ``M q̈ + C q̇ + g + τ_f = τ_m + τ_ext`` (DESIGN §1),
-so the true external torque is known exactly. The MuJoCo simulator (``kvark_ros.sim``) is the
-realistic plant; this stream needs no extra dependency.
+Used by ``kvark bench``, ``kvark soak`` and the tests: the joint trajectory is prescribed (sums of
+sines), and the commanded torque follows from the dynamics ``M q̈ + C q̇ + g + τ_f = τ_m + τ_ext``
+(docs/method.md §1.2), so the true external torque is known exactly. The MuJoCo simulator
+(``kvark_ros.sim``) is the realistic plant; this stream needs no extra dependency.
+``train_synthetic`` trains a model on such streams.
 """
 from __future__ import annotations
 
@@ -12,9 +13,12 @@ from typing import Callable
 
 import numpy as np
 
+from kvark_ros.core.inputs import EstimatorInputs
+from kvark_ros.core.model_store import TrainedModel
 from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.training import train_model
 
-# Gaz et al., RA-L 2019, Panda joint friction (DESIGN §4): τ_f = φ1/(1+e^{−φ2(q̇+φ3)}) − φ1/(1+e^{−φ2 φ3})
+# Gaz et al., RA-L 2019, Panda joint friction (docs/method.md §10): τ_f = φ1/(1+e^{−φ2(q̇+φ3)}) − φ1/(1+e^{−φ2 φ3})
 GAZ_PHI1 = np.array([0.54615, 0.87224, 0.64068, 1.2794, 0.83904, 0.30301, 0.56489])        # N·m
 GAZ_PHI2 = np.array([5.1181, 9.0657, 10.136, 5.5903, 8.3469, 17.133, 10.336])            # s/rad
 GAZ_PHI3 = np.array([0.039533, 0.025882, -0.04607, 0.036194, 0.026226, -0.021047, 0.0035526])  # rad/s
@@ -66,3 +70,14 @@ def synthetic_stream(robot: RobotModel, duration: float, rate: float = 500.0, se
     tau_m = np.array([robot.inverse_dynamics(q[k], qd[k], qdd[k]) for k in range(len(stamp))])
     tau_m += friction - tau_ext + torque_noise_std * rng.standard_normal(q.shape)
     return SyntheticStream(stamp, q, qd, qdd, tau_m, tau_ext, friction)
+
+
+def train_synthetic(robot: RobotModel, robot_name: str, seed: int = 0, duration: float = 20.0,
+                    baselines: bool = True) -> TrainedModel:
+    """The trainer of ``kvark train``, on two synthetic contact-free streams instead of bags."""
+    segments = []
+    for offset in range(2):
+        stream = synthetic_stream(robot, duration / 2, seed=seed + 1000 * offset)
+        segments.append(EstimatorInputs(stream.stamp, stream.q, stream.qd, stream.tau_m, "synthetic", 0))
+    return train_model(robot, robot_name, segments, baselines=baselines, seed=seed, log=lambda _line: None,
+                       info={"source": "synthetic stream"})

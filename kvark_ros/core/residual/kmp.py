@@ -18,36 +18,39 @@ evaluation and one small batched matrix-vector product.
 from __future__ import annotations
 
 import os
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
 import numpy as np
 import scipy.linalg
-import yaml
 from scipy.special import logsumexp
 from sklearn.mixture import GaussianMixture
 
-from kvark_ros.core.files import read_yaml, write_atomically
+from kvark_ros.core.residual.common import BATCH_CHUNK, VARIANCE_FLOOR, check_batch, check_training_data
+from kvark_ros.core.residual.files import (
+    FORMAT_VERSION,
+    ResidualModelError,
+    check_listed_values,
+    freeze_positive_vectors,
+    frozen_float_array,
+    read_arrays,
+    read_model_header,
+    save_model_pair,
+)
 
 __all__ = [
     "GMRReference",
     "KMPHyperparameters",
     "KMPResidualModel",
-    "ResidualModelError",
     "default_hyperparameters",
     "fit_gmr_reference",
 ]
 
-FORMAT_VERSION = 1
 STEM = "kmp"
 NPZ_NAME = f"{STEM}.npz"
 YAML_NAME = f"{STEM}.yaml"
 
-# Smallest predictive variance returned (N²·m²): eq. 23 is a difference of two nearly equal
-# numbers near the data and round-off can push it slightly below zero.
-VARIANCE_FLOOR = 1e-12
 # reg_covar of the GMM, in standardised units (both coordinates have unit variance). It keeps
 # each component's standard deviation above 1 % of the data spread, so a component cannot
 # collapse onto one line of quantised velocities (encoder resolution / t_s) or onto q̇ = 0
@@ -59,42 +62,9 @@ GMM_MAX_ITER = 300
 # absolute floor for a constant residual, so that Σ in eqs. 22-23 stays positive definite.
 GMR_VARIANCE_FLOOR_REL = 1e-6
 GMR_VARIANCE_FLOOR_ABS = 1e-12
-# Query rows per chunk in predict_batch: bounds the (chunk, n, N) temporaries to a few MB.
-_BATCH_CHUNK = 4096
 
 _REFERENCE_KEYS = ("s", "mu", "sigma2")
 _HYPER_KEYS = ("length_scale", "sigma_f2", "lambda1", "lambda2")
-
-
-def freeze_positive_vectors(instance: Any, keys: Sequence[str]) -> None:
-    """Replace each field ``keys`` of a frozen dataclass by a read-only float vector, all > 0, one length."""
-    for key in keys:
-        array = _frozen_float_array(key, getattr(instance, key), ndim=1)
-        if np.any(array <= 0.0):
-            raise ResidualModelError(f"{key} must be strictly positive, got {array}")
-        object.__setattr__(instance, key, array)
-    shapes = {getattr(instance, key).shape for key in keys}
-    if len(shapes) != 1:
-        raise ResidualModelError(f"hyperparameter arrays differ in shape: {shapes}")
-
-
-class ResidualModelError(ValueError):
-    """Invalid residual-model parameters, or a model file that cannot be loaded."""
-
-
-def _frozen_float_array(name: str, value: Any, ndim: int) -> np.ndarray:
-    """Return a read-only float64 copy of `value`, checked to be finite with `ndim` dimensions."""
-    try:
-        array = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ResidualModelError(f"{name} is not a numeric array ({exc})") from exc
-    if array.ndim != ndim:
-        raise ResidualModelError(
-            f"{name} must have {ndim} dimension(s), got shape {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise ResidualModelError(f"{name} contains non-finite values")
-    array.setflags(write=False)
-    return array
 
 
 @dataclass(frozen=True)
@@ -135,7 +105,7 @@ class GMRReference:
 
     def __post_init__(self) -> None:
         for key in _REFERENCE_KEYS:
-            object.__setattr__(self, key, _frozen_float_array(key, getattr(self, key), ndim=2))
+            object.__setattr__(self, key, frozen_float_array(key, getattr(self, key), ndim=2))
         shapes = {getattr(self, key).shape for key in _REFERENCE_KEYS}
         if len(shapes) != 1:
             raise ResidualModelError(f"reference arrays differ in shape: {shapes}")
@@ -173,38 +143,6 @@ def default_hyperparameters(n: int, n_support: int = 30) -> KMPHyperparameters:
         lambda1=np.full(n, 1.0),
         lambda2=np.full(n, n_support * sigma_f2),
     )
-
-
-def _check_training_data(qd: np.ndarray, tau_r: np.ndarray, n_components: int,
-                         n_support: int) -> tuple[np.ndarray, np.ndarray]:
-    """Validate training data and settings; return qd, tau_r as float64 arrays (T, n)."""
-    if n_components < 1:
-        raise ValueError(f"n_components must be >= 1, got {n_components}")
-    if n_support < 2:
-        raise ValueError(f"n_support must be >= 2, got {n_support}")
-    qd = np.asarray(qd, dtype=np.float64)
-    tau_r = np.asarray(tau_r, dtype=np.float64)
-    if qd.ndim != 2 or qd.shape != tau_r.shape:
-        raise ValueError(
-            f"qd and tau_r must both have shape (T, n); got {qd.shape} and {tau_r.shape}")
-    for name, array in (("qd", qd), ("tau_r", tau_r)):
-        bad = ~np.isfinite(array)
-        if np.any(bad):
-            joints = np.flatnonzero(bad.any(axis=0)).tolist()
-            raise ValueError(
-                f"{name} contains {int(bad.sum())} NaN/Inf value(s) (joints {joints}); "
-                "remove or interpolate them before fitting")
-    n_samples = qd.shape[0]
-    if n_samples < 5 * n_components:
-        raise ValueError(
-            f"too few samples to fit a {n_components}-component GMM: got {n_samples}, "
-            f"need at least {5 * n_components}")
-    still = np.flatnonzero(np.ptp(qd, axis=0) == 0.0)
-    if still.size:
-        raise ValueError(
-            f"joint(s) {still.tolist()} never move in the training data (constant velocity); "
-            "their residual cannot be modelled as a function of velocity")
-    return qd, tau_r
 
 
 def _gmr_1d(x: np.ndarray, y: np.ndarray, s: np.ndarray, n_components: int,
@@ -249,7 +187,7 @@ def fit_gmr_reference(qd: np.ndarray, tau_r: np.ndarray, n_components: int = 10,
     observed range of each joint. Raises ValueError for non-finite data, mismatched shapes,
     fewer than 5 * n_components samples, or a joint whose velocity is constant.
     """
-    qd, tau_r = _check_training_data(qd, tau_r, n_components, n_support)
+    qd, tau_r = check_training_data(qd, tau_r, n_components, n_support)
     n_joints = qd.shape[1]
     s = np.linspace(qd.min(axis=0), qd.max(axis=0), n_support, axis=1)  # (n, N)
     mu = np.empty_like(s)
@@ -362,13 +300,11 @@ class KMPResidualModel:
 
         Same equations and floors as predict(), evaluated in chunks to bound memory.
         """
-        qd = np.asarray(qd, dtype=np.float64)
-        if qd.ndim != 2 or qd.shape[1] != self.n_joints:
-            raise ValueError(f"qd must have shape (T, {self.n_joints}), got {qd.shape}")
+        qd = check_batch(qd, self.n_joints)
         mean = np.empty_like(qd)
         var = np.empty_like(qd)
-        for start in range(0, qd.shape[0], _BATCH_CHUNK):
-            rows = slice(start, start + _BATCH_CHUNK)
+        for start in range(0, qd.shape[0], BATCH_CHUNK):
+            rows = slice(start, start + BATCH_CHUNK)
             e = np.exp(self._neg_half_inv_ls2 * (qd[rows, :, None] - self._s) ** 2)  # (t, n, N)
             w = np.matmul(self._weights, e[..., None])[..., 0]  # (t, n, N+1)
             mean[rows] = w[:, :, 0]  # eq. 22
@@ -421,7 +357,7 @@ class KMPResidualModel:
         header = read_model_header(yaml_path, ("n_support",))
         shapes = {key: (header["n_joints"], header["n_support"]) for key in _REFERENCE_KEYS}
         shapes.update({key: (header["n_joints"],) for key in _HYPER_KEYS})
-        arrays = _read_arrays(npz_path, shapes)
+        arrays = read_arrays(npz_path, shapes)
         check_listed_values(yaml_path, npz_path, header.get("hyperparameters"), arrays, _HYPER_KEYS)
         try:
             reference = GMRReference(**{key: arrays[key] for key in _REFERENCE_KEYS})
@@ -429,93 +365,3 @@ class KMPResidualModel:
             return cls(reference, hyper, metadata=header["metadata"])
         except ResidualModelError as exc:
             raise ResidualModelError(f"{npz_path}: {exc}") from exc
-
-
-def _header_text(header: Mapping[str, Any]) -> str:
-    try:
-        return yaml.safe_dump(dict(header), sort_keys=False)
-    except yaml.YAMLError as exc:
-        raise ValueError(f"metadata must contain plain YAML types only ({exc})") from exc
-
-
-def save_model_pair(directory: str | os.PathLike, stem: str, arrays: Mapping[str, np.ndarray],
-                    header: Mapping[str, Any]) -> None:
-    """Write directory/<stem>.npz then directory/<stem>.yaml, each atomically (temp + rename).
-
-    The npz is written first, so a crash in between leaves the previous header, which then
-    disagrees with the new arrays and load() refuses the pair instead of mixing them.
-    """
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    text = _header_text(header)
-    write_atomically(directory / f"{stem}.npz", lambda f: np.savez(f, **arrays))
-    write_atomically(directory / f"{stem}.yaml", lambda f: f.write(text.encode()))
-
-
-def check_listed_values(yaml_path: Path, npz_path: Path, listed: Any, arrays: Mapping[str, np.ndarray],
-                        keys: tuple[str, ...]) -> None:
-    """The values listed in the YAML header must equal the arrays in the npz (same save)."""
-    if not isinstance(listed, dict):
-        raise ResidualModelError(f"{yaml_path}: missing 'hyperparameters' mapping")
-    for key in keys:
-        try:
-            agrees = np.allclose(np.asarray(listed.get(key), dtype=np.float64), arrays[key],
-                                 rtol=1e-12, atol=0.0)
-        except (TypeError, ValueError):
-            agrees = False
-        if not agrees:
-            raise ResidualModelError(
-                f"{yaml_path}: {key!r} = {listed.get(key)} disagrees with {npz_path} "
-                f"({arrays[key].tolist()}); the files are not from the same save")
-
-
-def read_model_header(path: Path, int_keys: tuple[str, ...], model: str | None = None) -> dict[str, Any]:
-    """Read and check a model's YAML header (format version, ``model`` name if given, positive
-    integers ``n_joints`` and ``int_keys``, optional ``metadata`` mapping); ResidualModelError naming
-    ``path`` on any problem. Shared by KMP and the baselines' models."""
-    header = read_yaml(path, ResidualModelError, "model header", "retrain the model", "retrain the model",
-                       "retrain the model")
-    if not isinstance(header, dict):
-        raise ResidualModelError(f"{path}: expected a mapping at top level")
-    version = header.get("format_version")
-    if version != FORMAT_VERSION:
-        raise ResidualModelError(
-            f"{path}: unknown format_version {version!r} (this code reads {FORMAT_VERSION})")
-    if model is not None and header.get("model") != model:
-        raise ResidualModelError(f"{path}: model is {header.get('model')!r}, expected {model!r}")
-    for key in ("n_joints",) + int_keys:
-        value = header.get(key)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ResidualModelError(f"{path}: {key} must be a positive integer, got {value!r}")
-    metadata = header.get("metadata") or {}
-    if not isinstance(metadata, dict):
-        raise ResidualModelError(f"{path}: 'metadata' must be a mapping")
-    header["metadata"] = metadata
-    return header
-
-
-def _read_arrays(path: Path, shapes: Mapping[str, tuple[int, ...]]) -> dict[str, np.ndarray]:
-    """Read the arrays named in `shapes` from an npz (object arrays refused); check shape and values."""
-    arrays: dict[str, np.ndarray] = {}
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            for key, shape in shapes.items():
-                if key not in npz.files:
-                    raise ResidualModelError(f"{path}: missing array {key!r}")
-                array = npz[key]
-                if array.shape != shape:
-                    raise ResidualModelError(
-                        f"{path}: array {key!r} has shape {array.shape}, expected {shape}")
-                if array.dtype.kind not in "fiu":
-                    raise ResidualModelError(
-                        f"{path}: array {key!r} has non-numeric dtype {array.dtype}")
-                if not np.all(np.isfinite(array)):
-                    raise ResidualModelError(f"{path}: array {key!r} has non-finite values")
-                arrays[key] = array.astype(np.float64)
-    except ResidualModelError:
-        raise
-    except (OSError, EOFError, ValueError, zipfile.BadZipFile) as exc:
-        # ValueError includes numpy's refusal of object arrays; its text suggests an unsafe load.
-        raise ResidualModelError(f"{path}: corrupt or not a kvark model file ({type(exc).__name__}); "
-                                 "retrain the model with `kvark train`") from exc
-    return arrays

@@ -1,0 +1,21 @@
+"""What the estimator and the trainer consume: one (stamp, q, q̇, τ_m) per joint-state sample."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class EstimatorInputs:
+    """stamp (T,) s; q (T, n) rad; qd (T, n) rad/s; tau_m (T, n) N·m; what τ_m came from; drops."""
+
+    stamp: np.ndarray
+    q: np.ndarray
+    qd: np.ndarray
+    tau_m: np.ndarray
+    torque_source: str
+    dropped: int
+
+    def __len__(self) -> int:
+        return len(self.stamp)

@@ -8,12 +8,12 @@ from kvark_ros import __version__
 from kvark_ros.core.augmentation import AugmentationError
 from kvark_ros.core.config import ConfigError
 from kvark_ros.core.observers import ObserverError
-from kvark_ros.core.residual_model import ResidualModelError
+from kvark_ros.core.residual import ResidualModelError
 from kvark_ros.core.robot_model import RobotModelError
 from kvark_ros.gap import diagnose
-from kvark_ros.io.bag import BagError
+from kvark_ros.io import BagError
 from kvark_ros.sim.plant import PlantError
-from kvark_ros.tools import bench, benchmark, replay, soak, train
+from kvark_ros.tools import bench, benchmark, config, replay, soak, train
 
 USER_ERRORS = (AugmentationError, ConfigError, ResidualModelError, RobotModelError, BagError, ObserverError, PlantError,
                FileNotFoundError)
@@ -37,6 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     benchmark.add_parser(subparsers)
     bench.add_parser(subparsers)
     soak.add_parser(subparsers)
+    config.add_parser(subparsers)
     return parser
 
 

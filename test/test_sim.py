@@ -194,7 +194,7 @@ def test_payload_at_rest_weighs_m_g_and_matches_an_external_force() -> None:
     q = truth.q[-1]
     pin.framesForwardKinematics(model.model, model.data, q)
     rotation = model.data.oMf[model.flange_frame_id].rotation
-    np.testing.assert_allclose(rotation @ force, [0.0, 0.0, -mass * G], atol=0.01 * mass * G)  # DESIGN §1
+    np.testing.assert_allclose(rotation @ force, [0.0, 0.0, -mass * G], atol=0.01 * mass * G)  # docs/method.md §1.2
     jac = pin.computeFrameJacobian(model.model, model.data, q, model.flange_frame_id, pin.LOCAL)
     np.testing.assert_allclose(jac.T @ np.r_[force, truth.wrench_torque[-1]], truth.tau_ext[-1], atol=1e-9)
     # At rest the drives hold gravity minus the external torque: τ_drive = g_nom(q) − τ_ext.
@@ -299,7 +299,7 @@ def test_joint_offset_is_an_encoder_error_only() -> None:
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
 def test_scenario_round_trips_through_a_bag(tmp_path: Path, storage: str) -> None:
-    bag = pytest.importorskip("kvark_ros.io.bag")
+    bag = pytest.importorskip("kvark_ros.io")
     run = run_scenario("ur5", "contact", seed=1, duration=0.6).run
     path = tmp_path / "run"
     bag.write_run(path, run, storage=storage)

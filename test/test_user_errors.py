@@ -23,7 +23,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from kvark_ros.cli import main
 from kvark_ros.core.model_store import MODEL_FILE
-from kvark_ros.io.bag import BagWriter, write_run
+from kvark_ros.io import BagWriter, write_run
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "config" / "panda.yaml"
@@ -365,7 +365,7 @@ def _assert_interrupted_training_keeps_the_model(files, tmp_path, capsys) -> Non
 
 def test_train_interrupted_during_the_fit_exits_130_and_keeps_the_previous_model(
         files, tmp_path, capsys, monkeypatch):
-    import kvark_ros.core.residual_baselines as baselines
+    import kvark_ros.core.training as baselines
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
@@ -379,7 +379,7 @@ def test_train_interrupted_while_saving_exits_130_and_keeps_the_previous_model(
     """The interrupt lands after kmp.npz is half written into the staging directory."""
     import kvark_ros.tools.train as train
     from kvark_ros.core.model_store import load_model
-    from kvark_ros.core.residual_model import KMPResidualModel
+    from kvark_ros.core.residual import KMPResidualModel
 
     trained = load_model(files.model)
     monkeypatch.setattr(train, "train_model", lambda *args, **kwargs: trained)
@@ -393,7 +393,7 @@ def test_train_interrupted_while_saving_exits_130_and_keeps_the_previous_model(
 
 
 def test_train_interrupted_with_no_previous_model_leaves_nothing(files, tmp_path, capsys, monkeypatch):
-    import kvark_ros.core.residual_baselines as baselines
+    import kvark_ros.core.training as baselines
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt

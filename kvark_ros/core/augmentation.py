@@ -1,6 +1,6 @@
 """Model augmentation: the physical effects ``kvark diagnose`` named, added to the nominal model.
 
-``augmentation.yaml`` (written by ``kvark diagnose``, DESIGN §6) lists effects with raw parameters
+``augmentation.yaml`` (written by ``kvark diagnose``, docs/method.md §8) lists effects with raw parameters
 θ such that, on contact-free motion, ``τ_m − τ_EL ≈ Σ Φ(q, q̇, q̈, τ_m) θ``. The improved model
 applies each effect where it physically acts:
 

@@ -4,18 +4,17 @@ Everything the filters need from the robot lives here: generalized momentum and 
 (paper v1 eqs. 5-8), inverse dynamics (eq. 27's tau_EL), the frame Jacobian, and the damped
 pseudo-inverse that maps external joint torques to a wrench (paper v2 eq. 39).
 
-An ``Augmentation`` (``kvark diagnose``, DESIGN §6) adds the physical effects the URDF lacks:
+An ``Augmentation`` (``kvark diagnose``, docs/method.md §8) adds the physical effects the URDF lacks:
 payload and armature inside M, C, g; the joint offset as a corrected q; friction, drive gain,
 offsets and ripple as a joint torque ``τ_aug(q, q̇, τ_m)`` the drive spends beyond the rigid body.
 
-Sign convention (DESIGN §1): ``M q̈ + C q̇ + g + τ_f = τ_m + τ_ext`` with ``τ_ext = Jᵀ F_ext``,
+Sign convention (docs/method.md §1.2): ``M q̈ + C q̇ + g + τ_f = τ_m + τ_ext`` with ``τ_ext = Jᵀ F_ext``,
 ``F_ext`` the wrench the environment applies *to the robot* at the end-effector frame origin.
 """
 from __future__ import annotations
 
 import hashlib
 import os
-from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
@@ -24,7 +23,9 @@ import numpy as np
 import pinocchio as pin
 
 from kvark_ros.core.augmentation import Augmentation
+from kvark_ros.core.config import EXAMPLE_ROBOT_DATA_PREFIX
 from kvark_ros.core.linalg import solve_spd
+from kvark_ros.core.payload import Payload
 
 if TYPE_CHECKING:
     from kvark_ros.core.config import EstimatorConfig
@@ -33,7 +34,6 @@ EXAMPLE_ROBOT_DATA_URDFS = {
     "panda": "robots/panda_description/urdf/panda.urdf",
     "ur5": "robots/ur_description/urdf/ur5_robot.urdf",
 }
-EXAMPLE_ROBOT_DATA_PREFIX = "example-robot-data:"
 
 
 class RobotModelError(ValueError):
@@ -79,25 +79,6 @@ def _example_robot_data_path(robot: str) -> str:
         if str(file).endswith(suffix):
             return str(dist.locate_file(file))
     raise RobotModelError(f"{EXAMPLE_ROBOT_DATA_PREFIX}{robot}: {suffix} missing from example-robot-data")
-
-
-@dataclass(frozen=True)
-class Payload:
-    """Rigid payload or tool fixed to the flange.
-
-    mass: kg; com: (3,) m in the flange frame; inertia: (6,) kg·m² about the CoM,
-    flange axes, ordered ``[ixx, iyy, izz, ixy, ixz, iyz]``.
-    """
-
-    mass: float
-    com: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    inertia: tuple[float, float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-
-    def to_pinocchio(self) -> pin.Inertia:
-        """Spatial inertia in the flange frame."""
-        ixx, iyy, izz, ixy, ixz, iyz = self.inertia
-        rot_inertia = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
-        return pin.Inertia(float(self.mass), np.asarray(self.com, dtype=float), rot_inertia)
 
 
 class RobotModel:

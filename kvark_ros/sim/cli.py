@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from kvark_ros.io.bag import write_run
+from kvark_ros.io import write_run
 from kvark_ros.sim.robots import ROBOTS
 from kvark_ros.sim.scenarios import SCENARIOS, run_scenario
 

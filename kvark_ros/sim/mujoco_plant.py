@@ -24,7 +24,7 @@ import mujoco
 import numpy as np
 import numpy.typing as npt
 
-from kvark_ros.core.robot_model import Payload
+from kvark_ros.core.payload import Payload
 from kvark_ros.sim.plant import PlantSpec, actuator_torque, dry_friction_level, friction_torque
 from kvark_ros.sim.robots import RobotSetup, urdf_xml
 
@@ -41,7 +41,7 @@ _DRY_FRICTION_SOLIMP = (0.99, 0.999, 0.001, 0.5, 2.0)
 @dataclass(frozen=True)
 class AppliedWrench:
     """An external wrench on one body: force (3,) N and torque (3,) N·m about ``point`` (3,) m,
-    all in base (world) coordinates. This is ``F_ext`` of DESIGN §1 at ``point``."""
+    all in base (world) coordinates. This is ``F_ext`` of docs/method.md §1.2 at ``point``."""
 
     body: str
     point: FloatArray

@@ -1,4 +1,4 @@
-"""Plant files: how the simulated robot differs from its URDF (DESIGN §4).
+"""Plant files: how the simulated robot differs from its URDF (docs/method.md §10).
 
 A plant file is YAML; every key is optional and a missing key means "as the URDF"::
 
@@ -44,12 +44,13 @@ import numpy.typing as npt
 from scipy.special import expit
 
 from kvark_ros.core.files import read_yaml
-from kvark_ros.core.robot_model import Payload
+from kvark_ros.core.payload import Payload
 
 FloatArray = npt.NDArray[np.float64]
 PLANT_DIR = Path(__file__).resolve().parent / "plants"
 FRICTION_MODELS = ("none", "gaz_sigmoid", "coulomb_viscous", "stribeck")
 CONTROL_RATES_HZ = (1000.0, 500.0)
+ORACLE_VARIANCE = 1e-4   # N²·m²: the oracle's residual is exact up to the plant's noise
 _FRICTION_PARAMETERS = {
     "none": ("viscous",),
     "gaz_sigmoid": ("phi1", "phi2", "phi3", "viscous"),
@@ -291,6 +292,26 @@ def friction_torque(spec: PlantSpec, qd: npt.ArrayLike) -> FloatArray:
     elif spec.dry_friction:
         torque = torque + dry_friction_level(spec, qd) * np.sign(qd)
     return torque
+
+
+class OracleResidual:
+    """The plant's true friction as a residual model, for the ``oracle`` observer.
+
+    ``predict(q̇)`` (n,) rad/s gives ``(τ_f(q̇), variance)``, (n,) N·m and (n,) N²·m²: the
+    ``ResidualPredictor`` of ``kvark_ros.core.observers.base``, passed to ``make_observer`` and
+    ``Estimator.from_config`` as ``oracle``.
+    """
+
+    def __init__(self, plant: PlantSpec, n: int) -> None:
+        self.plant = plant
+        self._variance = np.full(n, ORACLE_VARIANCE)
+
+    @property
+    def n_joints(self) -> int:
+        return len(self._variance)
+
+    def predict(self, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return friction_torque(self.plant, qd), self._variance
 
 
 def dry_friction_level(spec: PlantSpec, qd: npt.ArrayLike) -> FloatArray:

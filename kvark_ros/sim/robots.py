@@ -1,6 +1,6 @@
 """The simulated robots: joints, frames, home pose, limits the URDF lacks, controller gains.
 
-The URDFs come from the ``example-robot-data`` package (DESIGN §4). Everything here is what a
+The URDFs come from the ``example-robot-data`` package (docs/method.md §10). Everything here is what a
 robotics engineer sets up once per arm and never per run.
 """
 from __future__ import annotations
@@ -10,7 +10,8 @@ from functools import cache
 
 import numpy as np
 
-from kvark_ros.core.robot_model import Payload, RobotModel, resolve_urdf
+from kvark_ros.core.payload import Payload
+from kvark_ros.core.robot_model import RobotModel, resolve_urdf
 
 
 @cache

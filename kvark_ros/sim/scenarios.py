@@ -34,7 +34,7 @@ import pinocchio as pin
 from tqdm import tqdm
 
 from kvark_ros.core.robot_model import RobotModel
-from kvark_ros.io.bag import CommandSeries, JointStateSeries, RecordedRun, WrenchSeries
+from kvark_ros.io import CommandSeries, JointStateSeries, RecordedRun, WrenchSeries
 from kvark_ros.sim.controllers import (CartesianImpedanceController, CartesianTarget,
                                        JointTrackingController)
 from kvark_ros.sim.excitation import ExcitationLimits, optimise_excitation, random_trajectory

@@ -1,0 +1,177 @@
+"""The one table of configuration keys: name, type, allowed values, default, run-time, meaning.
+
+Everything else about a key comes from this table: validation (``kvark_ros.core.config``), the typed
+settings groups the code reads (``config.filter.ewma_rate``), the ROS node's parameter descriptors and
+the README's key table (``kvark config --keys``, checked by the tests). Adding a key is one ``Key`` row
+here plus the code that uses it.
+
+Dotted names are the ROS parameter names and the YAML nesting (``filter.ewma_rate`` is
+``filter: {ewma_rate: ...}``). ``group``/``attr`` say where the value lives in ``EstimatorConfig``:
+``config.<attr>`` for top-level keys, ``config.<group>.<attr>`` for grouped ones.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable
+
+OBSERVER_NAMES = ("kvark", "kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "gmr_gp", "gpadkf", "nnadkf",
+                  "momentum", "kfmo", "sh_akfmo", "vbkfmo_q", "eso", "oracle")
+WRENCH_FRAMES = ("base", "end_effector")
+VB_VARIANTS = ("paper", "huang", "smoothed", "window")
+MEASUREMENTS = ("momentum", "difference")
+# The VB readings each form of the filter implements (docs/method.md §4.5-4.6).
+VB_VARIANTS_BY_MEASUREMENT = {"momentum": ("paper", "smoothed", "window"), "difference": ("paper", "huang")}
+
+
+def vb_variant_problem(variant: str, measurement: str) -> str | None:
+    """Why ``filter.vb_variant`` cannot run in ``filter.measurement``'s form, or None if it can."""
+    allowed = VB_VARIANTS_BY_MEASUREMENT[measurement]
+    if variant in allowed:
+        return None
+    other = next(form for form, variants in VB_VARIANTS_BY_MEASUREMENT.items() if variant in variants)
+    return (f"'filter.vb_variant' {variant} is implemented for filter.measurement: {other} only; "
+            f"allowed with {measurement}: {', '.join(allowed)}")
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+@dataclass(frozen=True)
+class Key:
+    """One configuration key (module docstring).
+
+    kind: ``text``, ``path`` (text, may be empty), ``names`` (list of distinct strings), ``number``,
+    ``integer``, ``choice``, ``vector3`` or ``vector6``. ``low``/``high`` bound numbers and integers,
+    ``low_open``/``high_open`` make an end exclusive; ``choices`` lists a choice's options.
+    ``default`` None marks a required key.
+    """
+
+    name: str
+    kind: str
+    default: Any
+    meaning: str
+    runtime: bool = False
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    choices: tuple[str, ...] = ()
+    group: str | None = None
+    attr: str = ""
+
+    @property
+    def allowed(self) -> str:
+        """What the key accepts, as error messages and descriptors say it."""
+        if self.kind in ("number", "integer"):
+            kind = "a number" if self.kind == "number" else "an integer"
+            low, high = (float(self.low), float(self.high)) if self.kind == "number" else (self.low, self.high)
+            return f"{kind} in {'(' if self.low_open else '['}{low}, {high}{')' if self.high_open else ']'}"
+        return {"text": "a non-empty string", "path": "a path, or '' for none",
+                "names": "a non-empty list of distinct joint names", "choice": f"one of {', '.join(self.choices)}",
+                "vector3": "a list of 3 numbers",
+                "vector6": "a list of 6 numbers [ixx, iyy, izz, ixy, ixz, iyz]"}[self.kind]
+
+    def check(self, value: Any) -> bool:
+        """Whether ``value`` (as YAML or a ROS parameter gives it) is allowed."""
+        if self.kind in ("number", "integer"):
+            if not _is_number(value) or (self.kind == "integer" and not isinstance(value, int)):
+                return False
+            above = value > self.low if self.low_open else value >= self.low
+            below = value < self.high if self.high_open else value <= self.high
+            return above and below
+        checks: dict[str, Callable[[Any], bool]] = {
+            "text": lambda v: isinstance(v, str) and v.strip() != "",
+            "path": lambda v: isinstance(v, str),
+            "names": lambda v: (isinstance(v, list) and len(v) > 0 and all(isinstance(x, str) and x for x in v)
+                                and len(set(v)) == len(v)),
+            "choice": lambda v: v in self.choices,
+            "vector3": lambda v: isinstance(v, list) and len(v) == 3 and all(_is_number(x) for x in v),
+            "vector6": lambda v: isinstance(v, list) and len(v) == 6 and all(_is_number(x) for x in v),
+        }
+        return checks[self.kind](value)
+
+    @property
+    def python_type(self) -> type:
+        """Type of the value in ``EstimatorConfig`` (lists become tuples)."""
+        return {"number": float, "integer": int, "names": tuple, "vector3": tuple, "vector6": tuple}.get(
+            self.kind, str)
+
+
+def _key(name: str, kind: str, default: Any, meaning: str, **options: Any) -> Key:
+    """A Key whose group and attribute follow from its dotted name (``filter.ewma_rate``)."""
+    if "attr" not in options:
+        group, _, attr = name.rpartition(".")
+        options.update(group=group or None, attr=attr)
+    return Key(name, kind, default, meaning, **options)
+
+
+def _unit(low: float, high: float, **options: Any) -> dict[str, Any]:
+    return {"low": low, "high": high, **options}
+
+
+KEYS: tuple[Key, ...] = (
+    _key("robot", "text", None, "robot name, written into models and reports"),
+    _key("robot_model.urdf", "text", None,
+         "nominal model: URDF path, example-robot-data:panda / :ur5, or robot_description (the node takes the topic)", attr="urdf"),
+    _key("robot_model.joint_names", "names", None,
+         "estimated joints, in output order; others are locked; messages are matched by these names", attr="joint_names"),
+    _key("robot_model.ee_frame", "text", None, "wrench reference frame (origin and, for wrench.frame end_effector, axes)", attr="ee_frame"),
+    _key("robot_model.flange_frame", "text", None, "frame a known payload attaches to", attr="flange_frame"),
+    _key("robot_model.payload.mass", "number", 0.0, "known tool/payload at the flange added to the nominal model, kg (0: none)",
+         **_unit(0.0, 1000.0), group="payload", attr="mass"),
+    _key("robot_model.payload.com", "vector3", [0.0, 0.0, 0.0], "payload centre of mass in the flange frame, m",
+         group="payload", attr="com"),
+    _key("robot_model.payload.inertia", "vector6", [0.0] * 6,
+         "payload inertia about its CoM, kg m^2 (ixx iyy izz ixy ixz iyz)", group="payload", attr="inertia"),
+    _key("residual_model.model_dir", "text", None,
+         "trained model directory written by kvark train (~/reload_model reloads it)", attr="model_dir"),
+    _key("model_augmentation", "path", "",
+         "augmentation.yaml of kvark diagnose for kvark train; at estimation it must be the model directory's copy ('' = that copy)"),
+    _key("observer", "choice", "kvark", "observer name (README, Observers)", choices=OBSERVER_NAMES),
+    _key("wrench.frame", "choice", "base", "axes of the published wrench: base or end_effector (ee_frame)", runtime=True, choices=WRENCH_FRAMES),
+    _key("wrench.damping", "number", 0.05, "damping δ of the pseudo-inverse (paper v2 eq. 39)", runtime=True,
+         **_unit(0.0, 10.0)),
+    _key("filter.initial_covariance", "number", 1.0, "P₀ (τ block) = value · I, N²·m²", **_unit(0.0, 1e6, low_open=True)),
+    _key("filter.vb_iterations", "integer", 1, "VB iterations M per sample", **_unit(1, 50)),
+    _key("filter.vb_forgetting", "number", 0.99, "forgetting ρ of the inverse-Wishart statistics",
+         **_unit(0.0, 1.0, low_open=True)),
+    _key("filter.vb_variant", "choice", "window", "reading of the VB step (docs/method.md §4.5-4.6)", choices=VB_VARIANTS),
+    _key("filter.vb_window", "integer", 25, "window variant: samples L per window of the τ_ext change", **_unit(5, 5000)),
+    _key("filter.vb_prior_dof", "number", 1.0, "window variant: prior strength ν₀ (in windows) of the IW prior around the trained Σ_d",
+         **_unit(0.0, 1e6, low_open=True)),
+    _key("filter.onset_threshold", "number", 60.0,
+         "contact-onset GLR threshold (χ²(1) statistic; 0 = off; momentum form)", **_unit(0.0, 1e6)),
+    _key("filter.onset_window", "integer", 10, "samples back the onset may lie", **_unit(2, 500)),
+    _key("filter.measurement", "choice", "momentum", "form of the filter: p measured (momentum) or the paper's eq. 28 (difference)", choices=MEASUREMENTS),
+    _key("filter.huang_tau", "number", 300.0, "prior strength τ of the huang variant",
+         **_unit(0.0, 1e6, low_open=True)),
+    _key("filter.ewma_rate", "number", 0.01, "EWMA rate of the empirical noise (eq. 31)", runtime=True,
+         **_unit(0.0, 1.0, low_open=True)),
+    _key("filter.nis_rate", "number", 0.01, "running-mean NIS rate (A4)", runtime=True,
+         **_unit(0.0, 1.0, low_open=True)),
+    _key("input.max_gap", "number", 0.05, "s; a longer gap between joint states resets the filter", runtime=True,
+         **_unit(0.0, 10.0, low_open=True)),
+    _key("input.command_max_age", "number", 0.01, "s; oldest command a joint state may be paired with", runtime=True,
+         **_unit(0.0, 1.0, low_open=True)),
+    _key("input.queue_depth", "integer", 10, "subscription queue depth of the node (sensor-data QoS)", **_unit(1, 1000)),
+    _key("contact.confidence", "number", 0.99, "confidence of the variance-aware χ² contact test", runtime=True,
+         **_unit(0.5, 1.0, low_open=True, high_open=True)),
+    _key("contact.debounce", "number", 0.02, "s the contact test must hold before the flag changes",
+         runtime=True, **_unit(0.0, 1.0)),
+    _key("diagnostics.period", "number", 1.0, "s between /diagnostics messages", runtime=True,
+         **_unit(0.0, 60.0, low_open=True)),
+)
+KEYS_BY_NAME: dict[str, Key] = {key.name: key for key in KEYS}
+GROUPS: tuple[str, ...] = tuple(dict.fromkeys(key.group for key in KEYS if key.group))
+
+
+def keys_table() -> str:
+    """The README's table of configuration keys (Markdown), made from ``KEYS``."""
+    rows = ["| key | allowed | default | run time | meaning |", "|---|---|---|---|---|"]
+    for key in KEYS:
+        default = "required" if key.default is None else f"`{key.default!r}`".replace("'", "")
+        rows.append(f"| `{key.name}` | {key.allowed} | {default} | {'yes' if key.runtime else 'no'} | "
+                    f"{key.meaning} |")
+    return "\n".join(rows)

@@ -15,7 +15,7 @@ from kvark_ros.core.config import load_config
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.model_store import AUGMENTATION_FILE, load_model, save_model
 from kvark_ros.core.observers import ObserverError, make_observer
-from kvark_ros.core.residual_model import ResidualModelError
+from kvark_ros.core.residual import ResidualModelError
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.gap.effects import augmentation_gap
 
@@ -172,7 +172,7 @@ def test_config_naming_another_augmentation_than_the_model_was_trained_with_is_r
 
 
 def test_oracle_refuses_an_augmented_model(config, augmentation, trained):
-    from kvark_ros.sim.plant import load_plant
-    plant = load_plant(None, 7)
+    from kvark_ros.sim.plant import OracleResidual, load_plant
+    oracle = OracleResidual(load_plant(None, 7), 7)
     with pytest.raises(ObserverError, match="augmented"):
-        make_observer("oracle", replace(trained, augmentation=augmentation), config, plant)
+        make_observer("oracle", replace(trained, augmentation=augmentation), config.filter, oracle)

@@ -11,9 +11,10 @@ from scipy.stats import chi2
 from conftest import debounced_margin
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.model_store import load_model
+from kvark_ros.io import read_run
 from kvark_ros.io.alignment import estimator_inputs
-from kvark_ros.io.bag import read_run
-from kvark_ros.ros.contact import ContactDetector, contact_covariance
+from kvark_ros.tools.metrics import SETTLE, contact_metrics
+from kvark_ros.core.contact import ContactDetector, contact_covariance
 
 ROOT = Path(__file__).resolve().parents[1]
 AFTER_CONTACT = 0.2      # s after the last pushed sample before motion counts as contact-free again
@@ -53,7 +54,7 @@ def test_contact_covariance_adds_the_residual_uncertainty():
 
 @pytest.mark.parametrize("bag", ["panda_excitation_1", "panda_excitation_2", "panda_contact", "panda_collision"])
 def test_no_false_contact_flag_in_the_contact_free_part_of_the_committed_bags(panda_config, bag):
-    """models/panda with the default observer over each committed bag that has contact-free motion.
+    """models/panda with the default observer (the Estimator's own contact test) over each committed bag.
 
     Contact-free: before the first sample whose true external torque exceeds PUSHED on a joint and
     from AFTER_CONTACT s after the last (the payload bag carries its load throughout: none). On
@@ -64,17 +65,15 @@ def test_no_false_contact_flag_in_the_contact_free_part_of_the_committed_bags(pa
     run = read_run(ROOT / "bags" / bag, config.joint_names)
     inputs = estimator_inputs(run, path=bag)
     estimator = Estimator.from_config(config, trained)
-    detector = ContactDetector(len(config.joint_names), config.contact_confidence, config.contact_debounce)
     stamps, statistics, flags = [], [], []
     for k in range(len(inputs)):
         estimate = estimator.step(inputs.stamp[k], inputs.q[k], inputs.qd[k], inputs.tau_m[k])
         if estimate is None:
             continue
-        mean, variance = trained.residual.predict(inputs.qd[k])
-        covariance = contact_covariance(estimate.tau_cov, mean, variance, estimator.observer.uses_residual_model)
-        flags.append(detector.update(inputs.stamp[k], estimate.tau_ext, covariance))
+        flags.append(estimate.contact)
         stamps.append(inputs.stamp[k])
-        statistics.append(detector.statistic)
+        statistics.append(estimator.contact.statistic)
+    detector = estimator.contact
     stamps, statistics, flags = np.array(stamps), np.array(statistics), np.array(flags)
     pushed = np.abs(run.external_torque.effort).max(axis=1) > PUSHED
     free = np.ones(len(stamps), dtype=bool)
@@ -82,6 +81,33 @@ def test_no_false_contact_flag_in_the_contact_free_part_of_the_committed_bags(pa
         touched = run.external_torque.stamp[pushed]
         free = (stamps < touched[0]) | (stamps > touched[-1] + AFTER_CONTACT)
     assert free.sum() > 400, "at least 0.8 s of contact-free motion to judge"
-    margin = debounced_margin(stamps[free], statistics[free], detector.threshold, config.contact_debounce)
+    margin = debounced_margin(stamps[free], statistics[free], detector.threshold, config.contact.debounce)
     assert not flags[free].any(), f"false contact flag (threshold/statistic margin {margin:.3f})"
     assert margin > 1.0
+
+
+def test_contact_metrics_of_a_hand_made_flag():
+    """7 ms samples over 4.2 s (no sample lands on a boundary). Contacts (2 N·m on joint 0) during
+    [1.0, 1.5) and [3.0, 3.2) s; the flag is up during [1.04, 1.5) (detected at the first sample after
+    1.04 s), during [0.30, 0.32) (false: contact-free), never in the second contact (missed).
+    Contact-free: not touching and more than SETTLE s after the last touching sample."""
+    stamp = 0.007 * np.arange(600)
+    truth = np.zeros((600, 7))
+    first, second = (stamp >= 1.0) & (stamp < 1.5), (stamp >= 3.0) & (stamp < 3.2)
+    truth[first | second, 0] = 2.0
+    flag = ((stamp >= 1.04) & (stamp < 1.5)) | ((stamp >= 0.30) & (stamp < 0.32))
+    valid = np.ones(600, dtype=bool)
+    figures = contact_metrics(stamp, flag, valid, truth)
+    last_first, last_second = stamp[first][-1], stamp[second][-1]
+    settling = ((stamp > last_first) & (stamp <= last_first + SETTLE)) | (
+        (stamp > last_second) & (stamp <= last_second + SETTLE))
+    free = ~(first | second) & ~settling
+    assert figures["contact_free_samples"] == free.sum() > 400
+    assert figures["false_contact_share"] == pytest.approx(flag[free].sum() / free.sum(), abs=1e-6)
+    assert flag[free].sum() == 3                                    # 0.301, 0.308, 0.315 s
+    assert figures["onsets"] == 2 and figures["missed_onsets"] == 1
+    onset, detected = stamp[first][0], stamp[stamp >= 1.04][0]
+    assert figures["detection_delay"] == pytest.approx([detected - onset], abs=1e-6)
+    no_contact = contact_metrics(stamp, np.zeros(600, dtype=bool), valid, np.zeros((600, 7)))
+    assert no_contact["onsets"] == 0 and no_contact["detection_delay"] is None
+    assert no_contact["false_contact_share"] == 0.0

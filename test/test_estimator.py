@@ -8,7 +8,7 @@ import pytest
 
 from kvark_ros.core.estimator import Estimator, Status
 from kvark_ros.core.model_store import load_model, save_model
-from kvark_ros.core.residual_model import ResidualModelError
+from kvark_ros.core.residual import ResidualModelError
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream
 
 
@@ -22,7 +22,7 @@ def test_wrench_of_a_step_torque_matches_the_pseudo_inverse(estimator, panda):
     for k in range(len(stream.stamp)):
         estimate = estimator.step(stream.stamp[k], stream.q[k], stream.qd[k], stream.tau_m[k])
     J = panda.jacobian(stream.q[-1])
-    delta = estimator.config.wrench_damping
+    delta = estimator.config.wrench.damping
     expected = np.linalg.solve(J @ J.T + delta ** 2 * np.eye(6), J @ estimate.tau_ext)   # eq. 39
     assert np.allclose(estimate.wrench, expected)
     assert estimate.wrench_cov.shape == (6, 6) and np.linalg.eigvalsh(estimate.wrench_cov).min() > 0
@@ -60,6 +60,27 @@ def test_a_long_gap_resets_the_filter(panda_config, panda_trained):
     fresh.step(1.0, q, qd, np.zeros(7))
     assert np.array_equal(estimator.step(1.002, q, qd, np.zeros(7)).tau_ext,
                           fresh.step(1.002, q, qd, np.zeros(7)).tau_ext)
+
+
+def test_configure_applies_run_time_keys_as_if_built_with_them(panda_config, panda_trained, panda):
+    """Run-time keys changed through configure act exactly as in an estimator built with them;
+    a key that shapes the filter (filter.vb_window) is refused by name and changes nothing."""
+    changed = replace(panda_config, filter=replace(panda_config.filter, ewma_rate=0.05, nis_rate=0.2),
+                      wrench=replace(panda_config.wrench, damping=0.1))
+    estimator = Estimator.from_config(panda_config, panda_trained)
+    estimator.configure(changed)
+    assert estimator.config is changed and estimator.observer.settings.ewma_rate == 0.05
+    built = Estimator.from_config(changed, panda_trained)
+    stream = synthetic_stream(panda, 0.5, seed=4, external=step_torque(0.2, np.full(7, 1.0)))
+    for k in range(len(stream.stamp)):
+        sample = (stream.stamp[k], stream.q[k], stream.qd[k], stream.tau_m[k])
+        estimate, expected = estimator.step(*sample), built.step(*sample)
+        if expected is not None:
+            assert np.array_equal(estimate.tau_ext, expected.tau_ext)
+            assert np.array_equal(estimate.wrench, expected.wrench)
+    with pytest.raises(ValueError, match="filter.vb_window"):
+        estimator.configure(replace(changed, filter=replace(changed.filter, vb_window=50)))
+    assert estimator.config is changed and estimator.observer.settings is changed.filter
 
 
 def test_uses_the_actual_time_step(panda_config, panda_trained, panda):

@@ -5,7 +5,7 @@ with white noise, so every answer below is exact or has a stated tolerance.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
@@ -80,7 +80,7 @@ def rise_time(estimate: np.ndarray, s: Stream, start: float, torque: np.ndarray,
 def test_registry_builds_every_observer_from_the_config(panda_config):
     assert MOMENTUM_OBSERVER_NAMES == ("momentum", "kfmo", "sh_akfmo", "vbkfmo_q", "eso")
     for name in MOMENTUM_OBSERVER_NAMES:
-        observer = make_momentum_observer(name, 7, None, panda_config)
+        observer = make_momentum_observer(name, 7, None, panda_config.filter)
         assert observer.name == name and observer.n == 7
         assert observer.uses_residual_model is False
         x, P = observer.step(0.001, np.zeros(7), np.ones(7), np.zeros(7), np.zeros(7))
@@ -88,13 +88,28 @@ def test_registry_builds_every_observer_from_the_config(panda_config):
         assert observer.reports_covariance == (name in KF_NAMES) == (P is not None)
         if P is not None:
             assert P.shape == (7, 7)
-    assert make_momentum_observer("kfmo", 7, None, panda_config).initial_covariance == panda_config.initial_covariance
-    assert make_momentum_observer("vbkfmo_q", 7, None, panda_config).iterations == panda_config.vb_iterations
-    assert np.all(make_momentum_observer("momentum", 7, None, panda_config, gain=10.0).gain == 10.0)
+    settings = panda_config.filter
+    assert make_momentum_observer("kfmo", 7, None, settings).initial_covariance == settings.initial_covariance
+    assert make_momentum_observer("vbkfmo_q", 7, None, settings).iterations == settings.vb_iterations
+    assert np.all(make_momentum_observer("momentum", 7, None, settings, gain=10.0).gain == 10.0)
     with pytest.raises(ValueError, match="unknown momentum observer"):
-        make_momentum_observer("nope", 7, None, panda_config)
+        make_momentum_observer("nope", 7, None, settings)
     with pytest.raises(ValueError, match="joints"):
         make_momentum_observer("kfmo", 6, MomentumNoise.default(7))
+
+
+def test_configure_takes_the_run_time_keys_only(panda_config):
+    """An observer keeps the filter settings it was built with; configure changes run-time keys only."""
+    settings = panda_config.filter
+    observer = make_momentum_observer("kfmo", 7, None, settings)
+    assert observer.settings is settings
+    observer.configure(replace(settings, ewma_rate=0.05, nis_rate=0.2))
+    assert observer.settings.ewma_rate == 0.05 and observer.settings.nis_rate == 0.2
+    with pytest.raises(ValueError, match="filter.initial_covariance"):
+        observer.configure(replace(settings, initial_covariance=2.0))
+    assert observer.settings.initial_covariance == settings.initial_covariance
+    with pytest.raises(ValueError, match="without filter settings"):
+        make_momentum_observer("kfmo", 7).configure(settings)
 
 
 def test_reset_restarts_and_outputs_are_never_modified_afterwards():

@@ -9,7 +9,7 @@ import pytest
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.observers import FilterTuning, make_observer
 from kvark_ros.core.observers.kvark_filter import VARIANTS, KVARKFilter, kalman_update
-from kvark_ros.core.residual_model import GMRReference, KMPHyperparameters, KMPResidualModel
+from kvark_ros.core.residual import GMRReference, KMPHyperparameters, KMPResidualModel
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream
 
 STEP = np.array([3.0, -2.0, 1.5, 2.0, -1.0, 0.8, 0.5])    # N·m, switched on at t = 2 s
@@ -44,7 +44,7 @@ def test_kalman_update_matches_textbook_equations(rng):
 def test_virtual_measurement_sign_gives_torque_acting_on_the_robot(panda_config):
     """ṗ = u + τ_ext (our sign): a momentum growing faster than u means positive τ_ext."""
     residual = flat_residual(7)
-    observer = KVARKFilter("kf", residual, tuning(7), panda_config)
+    observer = KVARKFilter("kf", residual, tuning(7), panda_config.filter)
     dt, tau_ext = 0.002, np.linspace(-1, 1, 7)
     p_prev, u_prev = np.zeros(7), np.full(7, 0.3)
     for _ in range(2000):
@@ -63,9 +63,10 @@ FORMS = [("momentum", "smoothed"), ("momentum", "paper"), ("momentum", "window")
 def test_observers_converge_to_a_step_external_torque(panda, panda_config, panda_trained, name, measurement,
                                                       vb_variant):
     """Synthetic Panda with Gaz friction and 0.02 N·m torque noise; step τ_ext at t = 2 s."""
-    config = replace(panda_config, measurement=measurement, vb_variant=vb_variant)
+    settings = replace(panda_config.filter, measurement=measurement, vb_variant=vb_variant)
+    config = replace(panda_config, filter=settings)
     stream = synthetic_stream(panda, 8.0, seed=11, external=step_torque(2.0, STEP))
-    estimator = Estimator(config, panda, make_observer(name, panda_trained, config))
+    estimator = Estimator(config, panda, make_observer(name, panda_trained, config.filter))
     estimates = np.zeros_like(stream.tau_ext)
     for k in range(len(stream.stamp)):
         estimate = estimator.step(stream.stamp[k], stream.q[k], stream.qd[k], stream.tau_m[k])
@@ -90,7 +91,7 @@ def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_confi
                                                                      steps):
     from kvark_ros.core.observers.kvark_momentum import KVARKMomentumFilter
     from kvark_ros.core.observers.momentum_observers import MomentumNoise
-    config = replace(panda_config, measurement=measurement, vb_variant=vb_variant)
+    config = replace(panda_config.filter, measurement=measurement, vb_variant=vb_variant)
     if measurement == "difference":
         observer = KVARKFilter("kvark", flat_residual(7), tuning(7), config)
     else:
@@ -111,7 +112,7 @@ def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_confi
 
 
 def test_vb_process_noise_grows_when_the_external_torque_jumps(panda_config):
-    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), replace(panda_config, vb_variant="paper"))
+    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), replace(panda_config.filter, vb_variant="paper"))
     p_prev, u = np.zeros(7), np.zeros(7)
     for _ in range(500):
         observer.step(0.002, np.zeros(7), p_prev, p_prev, u)
@@ -124,7 +125,7 @@ def test_vb_process_noise_grows_when_the_external_torque_jumps(panda_config):
 def test_heteroscedastic_variants_trust_the_measurement_less_where_kmp_is_unsure(panda_config):
     """Eq. 30: far from the training data the KMP variance inflates R, so the gain drops."""
     residual = flat_residual(7)
-    config = replace(panda_config, initial_covariance=0.01)
+    config = replace(panda_config.filter, initial_covariance=0.01)
     gains = {}
     for speed in (0.0, 50.0):
         observer = KVARKFilter("kmp_kf", residual, tuning(7), config)
@@ -134,16 +135,16 @@ def test_heteroscedastic_variants_trust_the_measurement_less_where_kmp_is_unsure
 
 
 def test_reset_restores_the_initial_state(panda_config):
-    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), replace(panda_config, vb_variant="paper"))
+    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), replace(panda_config.filter, vb_variant="paper"))
     observer.step(0.002, np.ones(7), np.ones(7), np.zeros(7), np.zeros(7))
     observer.reset()
     assert np.array_equal(observer.x, np.zeros(7))
-    assert np.array_equal(observer.P, panda_config.initial_covariance * np.eye(7))
+    assert np.array_equal(observer.P, panda_config.filter.initial_covariance * np.eye(7))
 
 
 def test_unknown_observer_is_refused(panda_config):
     with pytest.raises(ValueError, match="unknown K-VARK variant 'nope'"):
-        KVARKFilter("nope", flat_residual(7), tuning(7), panda_config)
+        KVARKFilter("nope", flat_residual(7), tuning(7), panda_config.filter)
 
 
 def test_smoothed_vb_statistic_equals_the_matrix_rts_smoother(panda_config, rng):
@@ -151,7 +152,7 @@ def test_smoothed_vb_statistic_equals_the_matrix_rts_smoother(panda_config, rng)
     from kvark_ros.core.observers.kvark_momentum import KVARKMomentumFilter
     from kvark_ros.core.observers.momentum_observers import MomentumNoise, joseph_update
     tuning_ = FilterTuning(np.full(1, 5.0), np.full(1, 0.05), np.full(1, 0.02), np.full(1, 0.01))
-    observer = KVARKMomentumFilter("kvark", flat_residual(1), tuning_, MomentumNoise.default(1), panda_config)
+    observer = KVARKMomentumFilter("kvark", flat_residual(1), tuning_, MomentumNoise.default(1), panda_config.filter)
     h = 0.002
     F, H = np.array([[1.0, h], [0.0, 1.0]]), np.array([[1.0, 0.0]])
     for _ in range(20):
@@ -190,13 +191,13 @@ def _random_walk_run(observer, n: int, h: float, density: float, R: float, steps
         yield k
 
 
-def _window_filter(panda_config, n: int, q0: float, R: float, variant: str = "window"):
+def _window_filter(panda_config, n: int, q0: float, R: float, variant: str = "window", **settings):
     from kvark_ros.core.observers.kvark_momentum import KVARKMomentumFilter
     from kvark_ros.core.observers.momentum_observers import MomentumNoise
     tuning_ = FilterTuning(np.full(n, 5.0), np.full(n, 0.05), np.full(n, 0.02), np.full(n, 1e-4))
     noise = MomentumNoise(np.full(n, R), np.full(n, q0), np.full(n, 1e-8))
-    config = replace(panda_config, measurement="momentum", vb_variant=variant, vb_window=25, vb_prior_dof=1.0,
-                     vb_forgetting=0.99)
+    config = replace(panda_config.filter, measurement="momentum", vb_variant=variant, vb_window=25, vb_prior_dof=1.0,
+                     vb_forgetting=0.99, **settings)
     return KVARKMomentumFilter("kvark", flat_residual(n, 1e-4), tuning_, noise, config)
 
 
@@ -232,7 +233,7 @@ def test_window_vb_learns_the_density_of_a_random_walk(panda_config, rng):
     n, h, q0, R = 3, 0.002, 0.05, 1e-6
     observer = _window_filter(panda_config, n, q0, R)
     q_true = 100.0 * q0
-    learned = [observer.win_q for k in _random_walk_run(observer, n, h, q_true, R, 5000, rng) if k >= 1000]
+    learned = [observer.window.q for k in _random_walk_run(observer, n, h, q_true, R, 5000, rng) if k >= 1000]
     ratio = np.mean(learned, axis=0) / q_true
     assert np.all((ratio > 0.6) & (ratio < 1.0))
 
@@ -250,10 +251,11 @@ def test_window_vb_state_covariances_match_the_augmented_matrix_filter(panda_con
         p = p_prev + rng.normal(0.0, 1e-3, 1)
         observer.step(h, np.zeros(1), p, p_prev, u)
         if k == 0:                                          # after the first step: z_0 = τ̂ with Var/Cov copied
-            x = np.array([observer.p_hat[0], observer.tau[0], observer.win_z[0, 0]])
-            P = np.array([[observer.a[0], observer.b[0], observer.win_pz[0, 0]],
-                          [observer.b[0], observer.c[0], observer.win_tz[0, 0]],
-                          [observer.win_pz[0, 0], observer.win_tz[0, 0], observer.win_zz[0, 0]]])
+            window = observer.window
+            x = np.array([observer.p_hat[0], observer.tau[0], window.z[0, 0]])
+            P = np.array([[observer.a[0], observer.b[0], window.pz[0, 0]],
+                          [observer.b[0], observer.c[0], window.tz[0, 0]],
+                          [window.pz[0, 0], window.tz[0, 0], window.zz[0, 0]]])
         else:
             sd = observer.Sigma_d[0]
             Q = np.zeros((3, 3))
@@ -266,17 +268,15 @@ def test_window_vb_state_covariances_match_the_augmented_matrix_filter(panda_con
             K = P[:, 0] / S
             x = x + K * (p[0] - x[0])
             P = P - np.outer(K, P[0])
-            assert np.allclose([observer.p_hat[0], observer.tau[0], observer.win_z[0, 0]], x, rtol=1e-6, atol=1e-12)
-            assert np.allclose([observer.win_pz[0, 0], observer.win_tz[0, 0], observer.win_zz[0, 0]],
+            window = observer.window
+            assert np.allclose([observer.p_hat[0], observer.tau[0], window.z[0, 0]], x, rtol=1e-6, atol=1e-12)
+            assert np.allclose([window.pz[0, 0], window.tz[0, 0], window.zz[0, 0]],
                                [P[0, 2], P[1, 2], P[2, 2]], rtol=1e-6, atol=1e-15)
         p_prev = p
 
 
 def _onset_filter(panda_config, n: int, threshold: float):
-    observer = _window_filter(panda_config, n, 0.05, 1e-6)
-    observer.config = replace(observer.config, onset_threshold=threshold, onset_window=10)
-    observer.reset()
-    return observer
+    return _window_filter(panda_config, n, 0.05, 1e-6, onset_threshold=threshold, onset_window=10)
 
 
 def _step_response(observer, rng, step: np.ndarray, noise: float, steps: int = 1500, h: float = 0.002,
@@ -299,7 +299,7 @@ def test_onset_glr_estimates_a_noise_free_jump_exactly(panda_config, rng):
     step = np.array([5.0, -3.0])
     observer = _onset_filter(panda_config, 2, 60.0)
     taus = _step_response(observer, rng, step, noise=0.0)
-    assert observer.onset_alarms == 2
+    assert observer.onset.alarms == 2
     alarm = np.flatnonzero(np.abs(taus[:, 0] - step[0]) < 1e-6)[0]
     assert 1000 <= alarm <= 1003                                 # two or three samples after the jump
     assert np.allclose(taus[alarm], step, atol=1e-6)
@@ -327,4 +327,4 @@ def test_onset_detector_stays_quiet_without_a_jump(panda_config, rng):
     observer = _onset_filter(panda_config, n, 60.0)
     for _ in _random_walk_run(observer, n, h, q0, R, 10000, rng):
         pass
-    assert observer.onset_alarms == 0
+    assert observer.onset.alarms == 0

@@ -25,11 +25,12 @@ from rosbags.typesys import Stores, get_typestore
 from kvark_ros import __version__
 from kvark_ros.cli import main
 from kvark_ros.core.config import OBSERVER_NAMES, load_config
+from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.model_store import MODEL_FILE, load_model, save_model
-from kvark_ros.core.residual_model import ResidualModelError
+from kvark_ros.core.residual import ResidualModelError
 from kvark_ros.core.robot_model import RobotModel, resolve_urdf
-from kvark_ros.io.alignment import EstimatorInputs, estimator_inputs
-from kvark_ros.io.bag import BagWriter, TopicNames, read_run, write_run
+from kvark_ros.io import BagWriter, TopicNames, read_run, write_run
+from kvark_ros.io.alignment import estimator_inputs
 from kvark_ros.tools.metrics import observer_metrics
 from kvark_ros.tools.replay import GroundTruth, ObserverRun, ground_truth, replay, run_observer
 
@@ -188,7 +189,7 @@ def test_cli_train_on_a_bag_without_joint_states_fails_in_one_line_and_keeps_the
 
 
 def test_training_that_raises_keeps_the_previous_model(bags, cli_model, tmp_path, monkeypatch):
-    import kvark_ros.core.residual_baselines as baselines
+    import kvark_ros.core.training as baselines
 
     def broken_fit(*args, **kwargs):
         raise RuntimeError("GP fit failed")
@@ -433,8 +434,9 @@ def test_metrics_of_hand_made_errors():
     wrench_hat[4, 1] = 6.0                   # force y error 6 on row 4
     wrench_hat[0] = 50.0                     # invalid row
     valid = np.array([False, True, True, True, True, True])
-    result = ObserverRun("x", tau_hat, tau_std, wrench_hat, None, valid, 12.345, {})
-    entry = observer_metrics(result, GroundTruth("hand", tau_true, wrench_true))
+    result = ObserverRun("x", tau_hat, tau_std, wrench_hat, None, valid, 12.345, {}, np.zeros(6, dtype=bool))
+    stamp = 0.002 * np.arange(6)
+    entry = observer_metrics(result, GroundTruth("hand", tau_true, wrench_true), stamp)
 
     assert entry["estimates"] == 5 and entry["us_per_step"] == 12.35
     assert entry["joint_rmse"] == pytest.approx([1.0, 2.0], abs=1e-6)
@@ -451,9 +453,9 @@ def test_metrics_of_hand_made_errors():
     assert entry["force_rmse_mean"] == pytest.approx(np.sqrt(3.0), abs=1e-6)
     assert entry["moment_rmse_mean"] == pytest.approx(1.0, abs=1e-6)
 
-    no_cov = observer_metrics(replace(result, tau_std=None), GroundTruth("hand", tau_true, wrench_true))
+    no_cov = observer_metrics(replace(result, tau_std=None), GroundTruth("hand", tau_true, wrench_true), stamp)
     assert no_cov["coverage95"] is None and no_cov["joint_rmse"] == entry["joint_rmse"]
-    bare = observer_metrics(result, None)
+    bare = observer_metrics(result, None, stamp)
     assert set(bare) == {"us_per_step", "estimates", "rejected"}
 
 
@@ -478,8 +480,8 @@ def frictionless(robot):
     hyperparameter fit on 1000 points with restarts), so the baselines are fitted directly with
     light settings on the same residuals and share K-VARK's covariance-matched tuning.
     """
-    from kvark_ros.core.residual_baselines import GMRGPResidualModel, MLPResidualModel, SparseGPResidualModel
-    from kvark_ros.tools.train import train_model, training_data
+    from kvark_ros.core.residual import GMRGPResidualModel, MLPResidualModel, SparseGPResidualModel
+    from kvark_ros.core.training import train_model, training_data
     segments = [_frictionless(robot, 3.0, seed)[0] for seed in (100, 200)]
     trained = train_model(robot, "panda", segments, baselines=False, log=lambda _line: None)
     data = training_data(robot, segments)
@@ -502,9 +504,9 @@ def test_every_observer_converges_to_a_constant_external_torque_step(config, fri
     torque noise, τ_ext stepping from 0 to STEP_TORQUE at 2 s. Tolerances: mean |error| < 0.03 N·m
     before the step (1-2 s) and after settling (4-6 s), max |error| < 0.15 N·m after settling
     (measured for all 14: mean ≤ 0.008, max ≤ 0.043 N·m)."""
-    from kvark_ros.sim.plant import load_plant
+    from kvark_ros.sim.plant import OracleResidual, load_plant
     inputs, tau_true = step_stream
-    result = run_observer(config, frictionless, inputs, name, plant=load_plant({}, N))
+    result = run_observer(config, frictionless, inputs, name, oracle=OracleResidual(load_plant({}, N), N))
     assert result.valid[1:].all() and not result.valid[0]
     assert np.isfinite(result.tau_ext).all() and np.isfinite(result.wrench).all()
     assert (result.tau_std is None) == (name in ("momentum", "eso"))      # the two without a covariance

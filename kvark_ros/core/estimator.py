@@ -7,24 +7,24 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from kvark_ros.core.augmentation import Augmentation, AugmentationError, load_augmentation
 from kvark_ros.core.config import EstimatorConfig
+from kvark_ros.core.contact import ContactDetector, contact_covariance
 from kvark_ros.core.model_store import TrainedModel, load_model
-from kvark_ros.core.observers import Observer, make_observer
+from kvark_ros.core.observers import Observer, ResidualPredictor, make_observer
 from kvark_ros.core.robot_model import RobotModel, urdf_sha256
 
 
 @dataclass(frozen=True)
 class Estimate:
-    """One output sample; torque acting on the robot (DESIGN §1).
+    """One output sample; torque acting on the robot (docs/method.md §1.2).
 
     tau_ext: (n,) N·m; tau_cov: (n, n) N²·m²; wrench: (6,) [N, N·m] at the end-effector frame
     origin, axes of ``wrench_frame``; wrench_cov: (6, 6). The covariances are ``None`` for
-    observers that report no uncertainty.
+    observers that report no uncertainty. contact: the debounced contact flag (docs/method.md §7).
     """
 
     stamp: float
@@ -32,6 +32,7 @@ class Estimate:
     tau_cov: np.ndarray | None
     wrench: np.ndarray
     wrench_cov: np.ndarray | None
+    contact: bool
 
 
 class Status:
@@ -67,34 +68,56 @@ class Estimator:
 
     Bad samples never reach the filter: they are rejected (``step`` returns ``None``), counted
     in ``counts`` and described by ``status``. The output is always finite.
+
+    The contact test (``contact``, a ``ContactDetector``) runs on every estimate with
+    S = P + diag σ²_r(q̇) from the observer's own residual model; an observer without one falls back
+    to the trained KMP with its mean as uncertainty too (docs/method.md §7), which needs ``trained``.
     """
 
-    def __init__(self, config: EstimatorConfig, robot: RobotModel, observer: Observer) -> None:
+    def __init__(self, config: EstimatorConfig, robot: RobotModel, observer: Observer,
+                 trained: TrainedModel | None = None) -> None:
         if robot.joint_names != config.joint_names or observer.n != robot.n:
             raise ValueError("robot model, observer and config must have the same joints")
         self.config = config
         self.robot = robot
         self.observer = observer
+        self.trained = trained
+        self._contact_residual = None if observer.uses_residual_model or trained is None else trained.residual
+        self.contact = ContactDetector(robot.n, config.contact.confidence, config.contact.debounce)
         self.counts: Counter[str] = Counter()
         self.status = Status.WARMUP
         self.reset()
 
     @classmethod
     def from_config(cls, config: EstimatorConfig, trained: TrainedModel | None = None,
-                    observer: str | None = None, urdf: str | None = None, plant: Any = None) -> "Estimator":
+                    observer: str | None = None, urdf: str | None = None,
+                    oracle: ResidualPredictor | None = None) -> "Estimator":
         """Build robot model and observer from the config; ``trained`` defaults to ``config.model_dir``.
 
         ``urdf`` overrides ``config.urdf`` (the node passes the ``robot_description`` string);
-        ``plant`` is the simulator's plant spec, needed by the ``oracle`` observer only.
+        ``oracle`` is the true residual (the simulator's ``OracleResidual``), for the ``oracle``
+        observer only.
         """
         trained = trained or load_model(config.model_dir, config.joint_names,
                                         urdf_sha256(config.urdf) if urdf is None else None)
         robot = RobotModel.from_config(config, model_augmentation(config, trained), urdf)
-        return cls(config, robot, make_observer(observer or config.observer, trained, config, plant))
+        return cls(config, robot, make_observer(observer or config.observer, trained, config.filter, oracle), trained)
+
+    def configure(self, config: EstimatorConfig) -> None:
+        """Apply a config whose run-time keys changed (config_schema.KEYS ``runtime``), from the next sample.
+
+        The estimator reads ``input.max_gap`` and ``wrench.*`` from ``config``; the observer takes
+        ``config.filter`` (``Observer.configure``: a changed key that is not run-time raises
+        ``ValueError`` and nothing changes).
+        """
+        self.observer.configure(config.filter)
+        self.contact.configure(config.contact.confidence, config.contact.debounce)
+        self.config = config
 
     def reset(self) -> None:
-        """Restart from the next sample (filter state and previous sample forgotten)."""
+        """Restart from the next sample (filter state, previous sample and contact state forgotten)."""
         self.observer.reset()
+        self.contact.reset()
         self._stamp: float | None = None
         self._p_prev = np.zeros(self.robot.n)
         self._u_prev = np.zeros(self.robot.n)
@@ -119,7 +142,7 @@ class Estimator:
             if stamp <= previous:
                 self._reject(Status.STAMP_NOT_INCREASING)
                 return None
-            if stamp - previous > self.config.max_gap:
+            if stamp - previous > self.config.input.max_gap:
                 self.reset()
                 self._reject(Status.GAP_RESET)
                 previous, gap_reset = None, True
@@ -131,8 +154,8 @@ class Estimator:
                 self._reject(Status.WARMUP)
             return None
         tau_ext, tau_cov = self.observer.step(stamp - previous, qd, p, p_prev, u_prev)
-        wrench, wrench_cov = self.robot.wrench_from_torque(q, tau_ext, tau_cov, self.config.wrench_damping,
-                                                           self.config.wrench_frame)
+        wrench, wrench_cov = self.robot.wrench_from_torque(q, tau_ext, tau_cov, self.config.wrench.damping,
+                                                           self.config.wrench.frame)
         total = tau_ext.sum() + (0.0 if tau_cov is None else tau_cov.sum() + wrench_cov.sum())
         if not np.isfinite(total):
             self.reset()
@@ -140,4 +163,17 @@ class Estimator:
             return None
         self.status = Status.OK
         self.counts[Status.OK] += 1
-        return Estimate(stamp, tau_ext, tau_cov, wrench, wrench_cov)
+        return Estimate(stamp, tau_ext, tau_cov, wrench, wrench_cov, self._contact_flag(stamp, qd, tau_ext, tau_cov))
+
+    def _contact_flag(self, stamp: float, qd: np.ndarray, tau_ext: np.ndarray, tau_cov: np.ndarray | None) -> bool:
+        """The debounced contact flag after this estimate (class docstring); unchanged without a covariance."""
+        if self.observer.uses_residual_model:
+            mean, variance = self.observer.prediction
+        elif self._contact_residual is not None:
+            mean, variance = self._contact_residual.predict(qd)
+        elif tau_cov is None:
+            return self.contact.flag
+        else:
+            return self.contact.update(stamp, tau_ext, tau_cov)
+        covariance = contact_covariance(tau_cov, mean, variance, self.observer.uses_residual_model)
+        return self.contact.update(stamp, tau_ext, covariance)

@@ -17,15 +17,15 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from kvark_ros.core.augmentation import load_augmentation
-from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, default_config_path, load_config
+from kvark_ros.core.config import EstimatorConfig, default_config_path, load_config, parse_observers
 from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.model_store import save_model
 from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.training import train_model
+from kvark_ros.io import read_run, write_run
 from kvark_ros.io.alignment import estimator_inputs
-from kvark_ros.io.bag import read_run, write_run
 from kvark_ros.tools.replay import replay
 from kvark_ros.tools.report import metrics_table
-from kvark_ros.tools.train import train_model
 
 TEST_SCENARIOS = ("payload", "contact", "collision")
 ABLATIONS = ("kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "kvark")
@@ -128,7 +128,7 @@ def write_report(out: Path, results: Mapping[str, Any], training: Mapping[str, A
 def augmentation_section(results: Mapping[str, Any]) -> str:
     """Joint RMSE on the nominal and on the augmented model (issue 6: the augmentation's effect)."""
     augmented = results["augmented"]
-    lines = ["## Model augmentation (kvark diagnose on the training bags, DESIGN §6)", "",
+    lines = ["## Model augmentation (kvark diagnose on the training bags, docs/method.md §8)", "",
              f"Effects found: {', '.join(augmented['effects']) or 'none'}; held-out gap "
              f"{augmented['gap_before']:.4f} → {augmented['gap_after']:.4f} N·m.", "",
              "| scenario | observer | nominal model | augmented model | change |", "|---|---|---|---|---|"]
@@ -170,21 +170,21 @@ def run(args: argparse.Namespace) -> int:
         print(line, flush=True)
 
     config = load_config(default_config_path(args.robot))
-    from kvark_ros.sim.plant import default_plant_path, load_plant
+    from kvark_ros.sim.plant import OracleResidual, default_plant_path, load_plant
     plant_path = Path(args.plant) if args.plant else default_plant_path(args.robot)
-    plant = load_plant(plant_path, config.n_joints)
+    oracle = OracleResidual(load_plant(plant_path, config.n_joints), config.n_joints)
     train_bags, test_bags = simulate_bags(args.robot, plan, out / "bags", args.seed, log, plant_path)
     robot = RobotModel.from_config(config)
-    segments = [estimator_inputs(read_run(bag, config.joint_names), config.command_max_age, path=str(bag))
+    segments = [estimator_inputs(read_run(bag, config.joint_names), config.input.command_max_age, path=str(bag))
                 for bag in train_bags]
     trained = train_model(robot, config.robot, segments, seed=args.seed, log=log,
                           info={"bags": [bag.name for bag in train_bags]})
     save_model(out / "model", trained)
-    observers = list(OBSERVER_NAMES) if args.observers == "all" else args.observers.split(",")
+    observers = parse_observers(args.observers, with_oracle=True)
     results: dict[str, Any] = {"scenarios": {}}
     for scenario, bag in test_bags.items():
         log(f"[benchmark] replaying {scenario}")
-        results["scenarios"][scenario] = replay(config, trained, bag, out / scenario, observers, plant=plant,
+        results["scenarios"][scenario] = replay(config, trained, bag, out / scenario, observers, oracle=oracle,
                                                 write_bag=False, log=log)
     if args.augment:
         results["augmented"] = augmented_run(config, robot, segments, test_bags, out, args.seed, log)
@@ -217,14 +217,4 @@ def augmented_run(config: EstimatorConfig, nominal: RobotModel, segments: list, 
     return {"effects": list(augmentation.effect_names),
             "gap_before": diagnosis.result["gap_before"]["joint_rmse_mean"],
             "gap_after": diagnosis.result["gap_after"]["joint_rmse_mean"], "scenarios": scenarios}
-
-
-def headline(results: Mapping[str, Any], observers: tuple[str, ...] = ("kvark", "kf", "momentum", "oracle")) -> str:
-    """A compact joint-RMSE table (scenarios × observers) for the README."""
-    rows = ["| scenario | " + " | ".join(observers) + " |", "|---|" + "---|" * len(observers)]
-    for name, metrics in results["scenarios"].items():
-        obs = metrics["observers"]
-        rows.append(f"| {name} | " + " | ".join(f"{obs[o]['joint_rmse_mean']:.3f}" if o in obs else "–"
-                                                for o in observers) + " |")
-    return "\n".join(rows)
 

@@ -12,8 +12,9 @@ def _rounded(values: np.ndarray | float) -> Any:
     return [None if not np.isfinite(v) else round(float(v), 6) for v in values]
 
 
-def observer_metrics(result: Any, truth: Any) -> dict[str, Any]:
-    """metrics.json's per-observer entry: joint/force/moment RMSE, |error| statistics, coverage95, µs/step.
+def observer_metrics(result: Any, truth: Any, stamp: np.ndarray) -> dict[str, Any]:
+    """metrics.json's per-observer entry: joint/force/moment RMSE, |error| statistics, coverage95, µs/step,
+    and the contact flag's figures (:func:`contact_metrics`, under ``contact``).
 
     Only samples where the observer gave an estimate and the truth is finite count. coverage95 is the
     share of joint samples whose true τ_ext lies within the reported ±1.96 σ (None without a covariance).
@@ -31,6 +32,7 @@ def observer_metrics(result: Any, truth: Any) -> dict[str, Any]:
         "mean_abs": _rounded(magnitude.mean()), "p95": _rounded(np.percentile(magnitude, 95)),
         "max": _rounded(magnitude.max()), "temporal_std": _rounded(error.std(axis=0).mean()),
         "coverage95": None,
+        "contact": contact_metrics(stamp, result.contact, result.valid, truth.tau_ext),
     })
     if result.tau_std is not None:
         inside = magnitude <= 1.96 * result.tau_std[rows]
@@ -43,3 +45,37 @@ def observer_metrics(result: Any, truth: Any) -> dict[str, Any]:
                       "force_rmse_mean": _rounded(wrench_rmse[:3].mean()),
                       "moment_rmse_mean": _rounded(wrench_rmse[3:].mean())})
     return entry
+
+
+CONTACT_TORQUE = 0.5     # N·m: a true external torque above this on any joint is contact
+SETTLE = 0.2             # s after a contact ends before motion counts as contact-free again
+
+
+def contact_metrics(stamp: np.ndarray, flag: np.ndarray, valid: np.ndarray, truth_tau: np.ndarray) -> dict[str, Any]:
+    """metrics.json's contact figures of one observer's flag against the true external torque.
+
+    Contact where any joint's true |τ_ext| exceeds CONTACT_TORQUE. ``false_contact_share``: the share
+    of contact-free samples (not in contact and at least SETTLE s after the last contact) that are
+    flagged. Each onset (a sample in contact after one that is not) is detected when the flag rises
+    before the contact ends; ``detection_delay`` (s) is from the onset to the first flagged sample,
+    ``missed_onsets`` counts the others. None where the run has no such samples or onsets.
+    """
+    rows = valid & np.isfinite(truth_tau).all(axis=1)
+    stamp, flag, touching = stamp[rows], flag[rows], (np.abs(truth_tau[rows]) > CONTACT_TORQUE).any(axis=1)
+    last_touch = np.maximum.accumulate(np.where(touching, stamp, -np.inf))
+    free = ~touching & (stamp - last_touch > SETTLE)
+    delays = []
+    missed = 0
+    for onset in np.flatnonzero(touching[1:] & ~touching[:-1]) + 1:
+        ends = np.flatnonzero(~touching[onset:])
+        end = onset + (ends[0] if len(ends) else len(touching) - onset)
+        flagged = np.flatnonzero(flag[onset:end])
+        if len(flagged):
+            delays.append(float(stamp[onset + flagged[0]] - stamp[onset]))
+        else:
+            missed += 1
+    return {"false_contact_share": _rounded(flag[free].mean()) if free.any() else None,
+            "contact_free_samples": int(free.sum()),
+            "onsets": len(delays) + missed, "missed_onsets": missed,
+            "detection_delay": _rounded(np.array(delays)) if delays else None,
+            "detection_delay_mean": _rounded(float(np.mean(delays))) if delays else None}

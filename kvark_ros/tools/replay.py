@@ -15,18 +15,19 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Sequence
 
 import numpy as np
 
-from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, load_config
+from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, load_config, parse_observers
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.files import write_text_atomically
+from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.model_store import TrainedModel, load_model
-from kvark_ros.core.observers import make_observer
+from kvark_ros.core.observers import ResidualPredictor, make_observer
 from kvark_ros.core.robot_model import RobotModel, urdf_sha256
-from kvark_ros.io.alignment import EstimatorInputs, estimator_inputs
-from kvark_ros.io.bag import BagError, BagWriter, RecordedRun, read_run, write_run_messages
+from kvark_ros.io import BagError, BagWriter, RecordedRun, read_run, write_run_messages
+from kvark_ros.io.alignment import estimator_inputs
 from kvark_ros.tools.metrics import observer_metrics
 
 OUTPUT_PREFIX = "/kvark"
@@ -43,7 +44,8 @@ class GroundTruth:
 
 @dataclass(frozen=True)
 class ObserverRun:
-    """One observer's outputs along the inputs; rows where ``valid`` is False had no estimate."""
+    """One observer's outputs along the inputs; rows where ``valid`` is False had no estimate.
+    ``contact``: the Estimator's debounced contact flag (T,) bool."""
 
     name: str
     tau_ext: np.ndarray
@@ -53,6 +55,7 @@ class ObserverRun:
     valid: np.ndarray
     us_per_step: float
     rejected: dict[str, int]
+    contact: np.ndarray
 
 
 def _align(stamp: np.ndarray, source_stamp: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -71,7 +74,7 @@ def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, i
         measured = np.hstack((run.wrench.force, run.wrench.torque))
         at_sensor = _align(inputs.stamp, run.wrench.stamp, measured)
         frame = run.wrench.frame_id
-        wrench = np.array([robot.wrench_at_end_effector(q, frame, w, config.wrench_frame) if np.isfinite(w).all()
+        wrench = np.array([robot.wrench_at_end_effector(q, frame, w, config.wrench.frame) if np.isfinite(w).all()
                            else np.full(6, np.nan) for q, w in zip(inputs.q, at_sensor)])
     if run.external_torque is not None:
         tau = _align(inputs.stamp, run.external_torque.stamp, run.external_torque.effort)
@@ -93,26 +96,27 @@ def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, i
 
 def _wrench_of_torque(robot: RobotModel, config: EstimatorConfig, q: np.ndarray, tau: np.ndarray) -> np.ndarray:
     """Ground-truth wrench from a ground-truth torque through the estimator's own mapping (eq. 39)."""
-    return np.array([robot.wrench_from_torque(qk, tk, None, config.wrench_damping, config.wrench_frame)[0]
+    return np.array([robot.wrench_from_torque(qk, tk, None, config.wrench.damping, config.wrench.frame)[0]
                      if np.isfinite(tk).all() else np.full(6, np.nan) for qk, tk in zip(q, tau)])
 
 
 def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: EstimatorInputs, name: str,
-                 plant: Any = None) -> ObserverRun:
-    """Step a fresh Estimator with observer ``name`` over every input sample."""
-    estimator = Estimator.from_config(config, trained, observer=name, plant=plant)
+                 oracle: ResidualPredictor | None = None) -> ObserverRun:
+    """Step a fresh Estimator with observer ``name`` over every input sample (``oracle``: for the oracle)."""
+    estimator = Estimator.from_config(config, trained, observer=name, oracle=oracle)
     count, n = len(inputs), estimator.robot.n
     tau = np.zeros((count, n))
     wrench = np.zeros((count, 6))
     tau_var = np.full((count, n), np.nan)
     wrench_var = np.full((count, 6), np.nan)
     valid = np.zeros(count, dtype=bool)
+    contact = np.zeros(count, dtype=bool)
     started = time.perf_counter()
     for k in range(count):
         estimate = estimator.step(inputs.stamp[k], inputs.q[k], inputs.qd[k], inputs.tau_m[k])
         if estimate is None:
             continue
-        valid[k] = True
+        valid[k], contact[k] = True, estimate.contact
         tau[k], wrench[k] = estimate.tau_ext, estimate.wrench
         if estimate.tau_cov is not None:
             tau_var[k] = np.diag(estimate.tau_cov)
@@ -121,13 +125,14 @@ def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: Estimat
     reports = estimator.observer.reports_covariance
     rejected = {status: number for status, number in estimator.counts.items() if status != "ok"}
     return ObserverRun(name, tau, np.sqrt(tau_var) if reports else None, wrench,
-                       np.sqrt(wrench_var) if reports else None, valid, 1e6 * elapsed / max(count, 1), rejected)
+                       np.sqrt(wrench_var) if reports else None, valid, 1e6 * elapsed / max(count, 1), rejected,
+                       contact)
 
 
 def write_estimates(path: Path, run: RecordedRun, inputs: EstimatorInputs, results: Sequence[ObserverRun],
                     config: EstimatorConfig) -> None:
     """The bag's own messages plus every observer's outputs, atomically."""
-    frame = "base" if config.wrench_frame == "base" else config.ee_frame
+    frame = "base" if config.wrench.frame == "base" else config.ee_frame
     names = run.joint_names
     with BagWriter(path, overwrite=True) as bag:
         write_run_messages(bag, run)
@@ -139,29 +144,33 @@ def write_estimates(path: Path, run: RecordedRun, inputs: EstimatorInputs, resul
                 bag.wrench(f"{prefix}/external_wrench", stamp, frame, result.wrench[k, :3], result.wrench[k, 3:])
                 if result.tau_std is not None:
                     bag.float64_array(f"{prefix}/external_joint_torque_stddev", stamp, result.tau_std[k], names=names)
+                bag.boolean(f"{prefix}/contact", stamp, bool(result.contact[k]))
 
 
 def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path, observers: Sequence[str],
-           reference_bag: Path | None = None, plant: Any = None, write_bag: bool = True,
+           reference_bag: Path | None = None, oracle: ResidualPredictor | None = None, write_bag: bool = True,
            plots: bool = True, log=print) -> dict:
-    """Replay ``bag`` through ``observers``; write outputs under ``out``; return metrics.json's content."""
-    for name in observers:           # fail on a model or plant that cannot serve an observer before decoding
-        make_observer(name, trained, config, plant)
+    """Replay ``bag`` through ``observers``; write outputs under ``out``; return metrics.json's content.
+
+    ``oracle``: the simulator's true residual (``kvark_ros.sim.plant.OracleResidual``), for the oracle.
+    """
+    for name in observers:           # fail on a model or oracle that cannot serve an observer before decoding
+        make_observer(name, trained, config.filter, oracle)
     started = time.perf_counter()
     run = read_run(bag, config.joint_names)
-    inputs = estimator_inputs(run, config.command_max_age, path=str(bag))
+    inputs = estimator_inputs(run, config.input.command_max_age, path=str(bag))
     if len(inputs) < 2:
         raise BagError(f"{bag}: fewer than two usable samples; check that joint_states and effort_commands overlap")
     reference = None
     if reference_bag is not None:
-        reference = estimator_inputs(read_run(reference_bag, config.joint_names), config.command_max_age,
+        reference = estimator_inputs(read_run(reference_bag, config.joint_names), config.input.command_max_age,
                                      path=str(reference_bag))
     robot = RobotModel.from_config(config, trained.augmentation)
     truth = ground_truth(robot, config, run, inputs, reference)
     decode_seconds = time.perf_counter() - started
     results = []
     for name in observers:
-        result = run_observer(config, trained, inputs, name, plant)
+        result = run_observer(config, trained, inputs, name, oracle)
         results.append(result)
         log(f"[replay] {name:<12} {result.us_per_step:7.1f} µs/step, {result.valid.sum()} estimates")
     duration = float(inputs.stamp[-1] - inputs.stamp[0])
@@ -170,7 +179,7 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
         "ground_truth": truth.kind if truth is not None else "none",
         "samples": len(inputs), "duration_s": round(duration, 3), "torque_source": inputs.torque_source,
         "dropped_samples": inputs.dropped, "decode_seconds": round(decode_seconds, 3),
-        "observers": {r.name: observer_metrics(r, truth) for r in results},
+        "observers": {r.name: observer_metrics(r, truth, inputs.stamp) for r in results},
     }
     out.mkdir(parents=True, exist_ok=True)
     if write_bag:
@@ -202,28 +211,19 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(run=run)
 
 
-def parse_observers(text: str, plant_given: bool) -> list[str]:
-    """'all' or a comma list, checked against the known names."""
-    names = [n for n in OBSERVER_NAMES if n != "oracle" or plant_given] if text == "all" else text.split(",")
-    unknown = [name for name in names if name not in OBSERVER_NAMES]
-    if unknown:
-        raise SystemExit(f"kvark: error: unknown observer {unknown[0]!r}; known: {', '.join(OBSERVER_NAMES)}")
-    return names
-
-
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
     trained = load_model(args.model or config.model_dir, config.joint_names, urdf_sha256(config.urdf))
-    plant = None
+    oracle = None
     if args.plant:
-        from kvark_ros.sim.plant import load_plant
-        plant = load_plant(args.plant, config.n_joints)
-    observers = parse_observers(args.observers, plant is not None and trained.augmentation is None)
-    if plant is not None and trained.augmentation is not None and args.observers == "all":
+        from kvark_ros.sim.plant import OracleResidual, load_plant
+        oracle = OracleResidual(load_plant(args.plant, config.n_joints), config.n_joints)
+    observers = parse_observers(args.observers, oracle is not None and trained.augmentation is None)
+    if oracle is not None and trained.augmentation is not None and args.observers == "all":
         print("[replay] oracle skipped: it adds the plant's true friction to the nominal model, and this "
               "model is augmented", flush=True)
     replay(config, trained, Path(args.bag), Path(args.out), observers,
-           Path(args.reference_bag) if args.reference_bag else None, plant, write_bag=not args.no_bag,
+           Path(args.reference_bag) if args.reference_bag else None, oracle, write_bag=not args.no_bag,
            log=lambda line: print(line, flush=True))
     print(f"[replay] wrote {args.out}/metrics.json and report.md", flush=True)
     return 0

@@ -33,6 +33,19 @@ def metrics_table(observers: Mapping[str, Mapping[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def contact_table(observers: Mapping[str, Mapping[str, Any]]) -> str:
+    """One row per observer: the contact flag against the truth (metrics' ``contact``), or '' without truth."""
+    rows = [(name, entry["contact"]) for name, entry in observers.items() if entry.get("contact")]
+    if not rows:
+        return ""
+    lines = ["| observer | false contact share | contact-free samples | onsets | missed | mean delay (s) |",
+             "|---|---|---|---|---|---|"]
+    for name, c in rows:
+        lines.append(f"| {name} | {_cell(c['false_contact_share'], 4)} | {c['contact_free_samples']} | "
+                     f"{c['onsets']} | {c['missed_onsets']} | {_cell(c['detection_delay_mean'])} |")
+    return "\n".join(lines)
+
+
 def write_replay_report(out: Path, metrics: Mapping[str, Any], robot: Any, inputs: Any, truth: Any,
                         results: Sequence[Any]) -> list[Path]:
     """report.md and figures for one replay."""
@@ -55,6 +68,10 @@ def write_replay_report(out: Path, metrics: Mapping[str, Any], robot: Any, input
             f"{metrics['dropped_samples']} samples without a fresh command dropped",
             f"- bag decoding: {metrics['decode_seconds']} s", "",
             metrics_table(metrics["observers"]), ""]
+    contact = contact_table(metrics["observers"])
+    if contact:
+        text += ["Contact flag (true contact: |τ_ext| > 0.5 N·m on a joint; contact-free: none, and 0.2 s after "
+                 "the last):", "", contact, ""]
     text += [f"![{path.stem}]({path.name})" for path in figures]
     write_text_atomically(out / "report.md", "\n".join(text) + "\n")
     return figures

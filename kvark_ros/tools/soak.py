@@ -81,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config or default_config_path(args.robot))
     observer = args.observer or config.observer
     robot = RobotModel.from_config(config)
-    from kvark_ros.tools.bench import train_synthetic
+    from kvark_ros.tools.synthetic import train_synthetic
     print(f"training a residual model on a 20 s synthetic free-motion stream of {config.robot} ...", flush=True)
     trained = train_synthetic(robot, config.robot, seed=args.seed, baselines=observer in LEARNED_BASELINE_VARIANTS)
     result = soak(config, robot, trained, steps=args.steps, observer=observer, seed=args.seed,
@@ -220,7 +220,7 @@ def soak(config: EstimatorConfig, robot: RobotModel, trained: TrainedModel, step
          log: Callable[[str], None] | None = None, progress_lines: int = 10) -> SoakResult:
     """Step a fresh Estimator ``steps`` times on the faulty stream; the figures as a ``SoakResult``."""
     name = observer or config.observer
-    estimator = Estimator(config, robot, make_observer(name, trained, config))
+    estimator = Estimator(config, robot, make_observer(name, trained, config.filter))
     rng = np.random.default_rng(seed + 7919)
     base = synthetic_stream(robot, min(SEGMENT_SECONDS, steps / RATE + 1.0), rate=RATE, seed=seed + 4242)
     length, n, dt = len(base.stamp), robot.n, 1.0 / RATE
@@ -266,7 +266,7 @@ def soak(config: EstimatorConfig, robot: RobotModel, trained: TrainedModel, step
             if kind is None or kind == WRAP:
                 pass
             elif kind == GAP:
-                k += int(rng.integers(int(config.max_gap * RATE) + 5, int(config.max_gap * RATE) + 125))
+                k += int(rng.integers(int(config.input.max_gap * RATE) + 5, int(config.input.max_gap * RATE) + 125))
                 if k >= length:
                     break
                 stamp, q, qd, tau_m = float(stamps[k]), base.q[k], base.qd[k], tau_m_all[k]
@@ -321,7 +321,7 @@ def soak(config: EstimatorConfig, robot: RobotModel, trained: TrainedModel, step
                         f"faults {sum(result.faults.values()):>6}  crashes {result.crashes}  "
                         f"nan {result.nan_outputs}  min eig P {result.min_eig_P:.3e}  "
                         f"rss {current_rss_mb():.1f} MB")
-        offset = float(stamps[-1]) + dt + config.max_gap + rng.uniform(0.01, 0.5)   # the wrap is a gap
+        offset = float(stamps[-1]) + dt + config.input.max_gap + rng.uniform(0.01, 0.5)   # the wrap is a gap
     result.seconds = time.perf_counter() - start
     result.steps = step
     result.statuses = Counter(estimator.counts)

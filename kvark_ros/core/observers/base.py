@@ -2,10 +2,13 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, Mapping, Protocol
 
 import numpy as np
+
+from kvark_ros.core.config import FilterSettings
+from kvark_ros.core.config_schema import KEYS_BY_NAME
 
 
 class ResidualPredictor(Protocol):
@@ -23,14 +26,42 @@ class Observer(ABC):
     The ``Estimator`` computes the generalized momentum ``p = M q̇`` and its input
     ``u = Cᵀq̇ − g + τ_m`` (paper v1 eqs. 5-7) once per sample and hands them to the observer,
     so every observer sees the same inputs.
+
+    ``settings`` are the ``filter.*`` keys the observer was built with (``None`` for an observer
+    built from explicit gains only); they are read at construction and changed only through
+    ``configure``.
     """
 
     name: str = ""
     uses_residual_model: bool = False
     reports_covariance: bool = True     # False: step returns P = None (e.g. the momentum observer)
+    # The residual model's (mean (n,) N·m, variance (n,) N²·m²) at the last step's q̇, for the contact
+    # test: observers with a residual model set it in ``step`` so the model is evaluated once per sample.
+    prediction: tuple[np.ndarray, np.ndarray] | None = None
 
-    def __init__(self, n: int) -> None:
+    def __init__(self, n: int, settings: FilterSettings | None = None) -> None:
         self.n = n
+        self.settings = settings
+
+    def configure(self, settings: FilterSettings) -> None:
+        """Apply new filter settings at run time (the ROS node's parameter changes).
+
+        Keys marked run-time in ``config_schema.KEYS`` (``filter.ewma_rate``, ``filter.nis_rate``)
+        take effect from the next step; any other key that differs from the observer's raises
+        ``ValueError`` naming it: it shapes the filter, so the observer must be rebuilt.
+        """
+        if self.settings is None:
+            raise ValueError(f"observer '{self.name}' was built without filter settings; rebuild it to change them")
+        fixed = [f"filter.{field.name}" for field in fields(settings)
+                 if not KEYS_BY_NAME[f"filter.{field.name}"].runtime
+                 and getattr(settings, field.name) != getattr(self.settings, field.name)]
+        if fixed:
+            raise ValueError(f"{', '.join(fixed)} cannot change at run time; rebuild the observer")
+        self.settings = settings
+        self._apply_runtime(settings)
+
+    def _apply_runtime(self, settings: FilterSettings) -> None:
+        """Copy the run-time keys the step reads into attributes; observers reading none keep this."""
 
     @abstractmethod
     def reset(self) -> None:

@@ -18,7 +18,7 @@ Units. Eq. 28 divided by t_s gives the measurement in torque units,
 (eq. 30). This is the paper's filter exactly, with covariances that do not depend on the rate.
 
 Sign. The paper writes ``ζ = −t_s τ_ext`` (eqs. 28-29, H = −t_s I) for torque acting *from* the
-robot; we output torque acting *on* the robot (DESIGN §1). The flip happens in one place:
+robot; we output torque acting *on* the robot (docs/method.md §1.2). The flip happens in one place:
 ``_virtual_measurement`` below, where H = +I.
 """
 from __future__ import annotations
@@ -28,7 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kvark_ros.core.config import EstimatorConfig
+from kvark_ros.core.config import FilterSettings
+from kvark_ros.core.config_schema import vb_variant_problem
 from kvark_ros.core.linalg import solve_spd
 from kvark_ros.core.observers.base import FilterTuning, Observer, ResidualPredictor
 
@@ -82,18 +83,18 @@ class KVARKFilter(Observer):
     State ``x = τ_ext`` (n,) N·m, random walk (eq. 32); covariance ``P`` (n, n) N²·m².
     ``residual`` is the KMP model for K-VARK and the ablations, another learned model for the
     baselines that share this filter, or the plant's true friction for the oracle.
+    ``settings`` (``filter.*``): ``initial_covariance``, the VB keys and the adaptation rates.
     """
 
     uses_residual_model = True
 
     def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning,
-                 config: EstimatorConfig, name: str | None = None) -> None:
-        super().__init__(residual.n_joints)
+                 settings: FilterSettings, name: str | None = None) -> None:
+        super().__init__(residual.n_joints, settings)
         if variant not in VARIANTS:
             raise ValueError(f"unknown K-VARK variant '{variant}'; known: {', '.join(VARIANTS)}")
-        if VARIANTS[variant].vb and config.vb_variant not in ("paper", "huang"):
-            raise ValueError(f"filter.vb_variant {config.vb_variant} is implemented for filter.measurement: "
-                             "momentum only")
+        if VARIANTS[variant].vb and (problem := vb_variant_problem(settings.vb_variant, "difference")):
+            raise ValueError(problem)
         if len(tuning.process_noise_density) != self.n:
             raise ValueError(f"filter tuning has {len(tuning.process_noise_density)} joints, "
                              f"the residual model {self.n}")
@@ -101,13 +102,22 @@ class KVARKFilter(Observer):
         self.variant = VARIANTS[variant]
         self.residual = residual
         self.tuning = tuning
-        self.config = config
+        self.initial_covariance = settings.initial_covariance          # P_0 = value · I, N²·m²
+        self.vb_paper = settings.vb_variant == "paper"                 # else huang
+        self.vb_iterations = settings.vb_iterations                    # M
+        self.vb_forgetting = settings.vb_forgetting                    # ρ
+        self.huang_tau = settings.huang_tau                            # τ of the huang prior
+        self._apply_runtime(settings)
         self.reset()
+
+    def _apply_runtime(self, settings: FilterSettings) -> None:
+        self.ewma_rate = settings.ewma_rate                            # eq. 31
+        self.nis_rate = settings.nis_rate                              # A4
 
     def reset(self) -> None:
         n = self.n
         self.x = np.zeros(n)                                           # Algorithm 1, line 12
-        self.P = self.config.initial_covariance * np.eye(n)
+        self.P = self.initial_covariance * np.eye(n)
         self.empirical = self.tuning.empirical_variance.copy()         # Σ_emp / t_s², N²·m²
         self.nis_mean = float(n)                                       # A4: running mean NIS
         self.Sigma_d: np.ndarray | None = None                         # VB: Σ_d,k−1, set on first step
@@ -123,6 +133,7 @@ class KVARKFilter(Observer):
              u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         variant = self.variant
         mu, var_star = self.residual.predict(qd)                       # eqs. 22-23
+        self.prediction = mu, var_star
         y = self._virtual_measurement(dt, mu, p, p_prev, u_prev)
         if variant.heteroscedastic:
             R = var_star + self.empirical                              # eq. 30 / t_s²
@@ -132,11 +143,11 @@ class KVARKFilter(Observer):
         r = y - x_pred                                                 # innovation, Algorithm 1 line 20
         if variant.ewma:
             # eq. 31, bounded by the training median (v2 Remark 2)
-            self.empirical = np.minimum(self.empirical + self.config.ewma_rate * (r * r - self.empirical),
+            self.empirical = np.minimum(self.empirical + self.ewma_rate * (r * r - self.empirical),
                                         self.tuning.empirical_variance)
         process = self.tuning.process_noise_density * dt              # Σ_d = diag(q) t_s
         if variant.vb:
-            self.x, self.P = (self._vb_paper(dt, x_pred, r, R, process) if self.config.vb_variant == "paper"
+            self.x, self.P = (self._vb_paper(dt, x_pred, r, R, process) if self.vb_paper
                               else self._vb_huang(x_pred, r, R, process))
             return self.x, self.P
         if variant.nis:
@@ -147,7 +158,7 @@ class KVARKFilter(Observer):
         if variant.nis:
             # normalised innovation squared rᵀ S⁻¹ r, with S⁻¹ = P_pred⁻¹ K from eq. 43
             nis = float(r @ solve_spd(P_pred, K @ r))
-            self.nis_mean += self.config.nis_rate * (nis - self.nis_mean)
+            self.nis_mean += self.nis_rate * (nis - self.nis_mean)
             self.nis_mean = float(np.clip(self.nis_mean, self.n * NIS_SCALE_BOUNDS[0],
                                           self.n * NIS_SCALE_BOUNDS[1]))
         return self.x, self.P
@@ -156,12 +167,12 @@ class KVARKFilter(Observer):
                   process: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """VB-IW on Σ_d as the paper writes it (eqs. 33-45), with Särkkä-Nummenmaa forgetting.
 
-        Forgetting prediction (DESIGN §2): ``λ_{k|k−1} = ρ(λ_{k−1} − n − 1) + n + 1``,
+        Forgetting prediction (docs/method.md §4.4): ``λ_{k|k−1} = ρ(λ_{k−1} − n − 1) + n + 1``,
         ``Υ_{k|k−1} = ρ Υ_{k−1}``; the prior starts at its steady state ``λ − n − 1 = 1/(1 − ρ)``
         with mean ``Σ_d0`` from training. Each of the M iterations re-reads eq. 42 with the latest
         Σ_d, otherwise the iterations would repeat one computation.
         """
-        n, rho = self.n, self.config.vb_forgetting
+        n, rho = self.n, self.vb_forgetting
         if self.Sigma_d is None:
             self.vb_dof = n + 1 + 1.0 / (1.0 - rho) if rho < 1.0 else n + 2.0
             self.Sigma_d = np.diag(process)
@@ -170,7 +181,7 @@ class KVARKFilter(Observer):
         scale_pred = rho * self.vb_scale
         Sigma_d = self.Sigma_d
         x, P = x_pred, self.P
-        for _ in range(self.config.vb_iterations):
+        for _ in range(self.vb_iterations):
             P_pred = self.P + Sigma_d                                   # eq. 42
             x, P, _ = kalman_update(x_pred, P_pred, r, R)               # eqs. 43-45
             e = x - x_pred                                              # eq. 34
@@ -187,13 +198,13 @@ class KVARKFilter(Observer):
         Prior ``IW(t = n + τ + 1, T = τ (P_{k−1} + Σ_d0))``; each iteration sets
         ``T = T_prior + P + e eᵀ``, ``t = t_prior + 1`` and uses ``E[P_{k|k−1}⁻¹]⁻¹ = T / t``.
         """
-        n, tau = self.n, self.config.huang_tau
+        n, tau = self.n, self.huang_tau
         P_nominal = self.P.copy()
         P_nominal.flat[:: n + 1] += process                             # eq. 42 with the trained Σ_d0
         scale_prior = tau * P_nominal
         dof = n + tau + 2.0
         x, P = x_pred, P_nominal
-        for _ in range(self.config.vb_iterations):
+        for _ in range(self.vb_iterations):
             e = x - x_pred
             P_tilde = (scale_prior + P + e[:, None] * e) / dof          # eq. 35: E[P_{k|k−1}⁻¹]⁻¹
             x, P, _ = kalman_update(x_pred, P_tilde, r, R)              # eqs. 43-45

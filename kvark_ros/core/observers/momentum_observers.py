@@ -1,11 +1,11 @@
-"""Baseline observers on the nominal momentum model, without a learned residual (seed 004, DESIGN §3).
+"""Baseline observers on the nominal momentum model, without a learned residual (docs/method.md §5.3-5.5).
 
-The second paper (``seeds/vb-adaptive-kf-momentum-observer.txt``) compares a VB adaptive-Q Kalman
+The second paper (the VB adaptive KF momentum observer; docs/method.md §5.3) compares a VB adaptive-Q Kalman
 filter momentum observer (VBKFMO-Q) with ESO, KFMO and SH-AKFMO; its equations were lost in
 extraction, so they are rebuilt here from the text and the standard literature, numbered (M1)…,
 (E1)…, (K1)…, (S1)…, (V1)… and cited next to the lines that implement them.
 
-Model (DESIGN §1, our sign: torque acting *on* the robot)::
+Model (docs/method.md §1.2, our sign: torque acting *on* the robot)::
 
     M q̈ + C q̇ + g + τ_f = τ_m + τ_ext   ⇒   ṗ = u + τ_ext − τ_f,   u = Cᵀq̇ − g + τ_m      (M1)
 
@@ -59,7 +59,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from kvark_ros.core.config import EstimatorConfig
+from kvark_ros.core.config import FilterSettings
 from kvark_ros.core.observers.base import Observer
 
 MOMENTUM_OBSERVER_NAMES = ("momentum", "kfmo", "sh_akfmo", "vbkfmo_q", "eso")
@@ -251,8 +251,8 @@ class MomentumObserver(Observer):
     reports_covariance = False
 
     def __init__(self, n: int, noise: MomentumNoise | None = None, *, gain: Any = DEFAULT_MOMENTUM_GAIN,
-                 discretization: str = "exact") -> None:
-        super().__init__(n)
+                 discretization: str = "exact", settings: FilterSettings | None = None) -> None:
+        super().__init__(n, settings)
         if discretization not in ("exact", "euler"):
             raise ValueError(f"discretization must be 'exact' or 'euler', got {discretization!r}")
         self.noise = noise
@@ -297,8 +297,8 @@ class ExtendedStateObserver(Observer):
     reports_covariance = False
 
     def __init__(self, n: int, noise: MomentumNoise | None = None, *,
-                 bandwidth: Any = DEFAULT_ESO_BANDWIDTH) -> None:
-        super().__init__(n)
+                 bandwidth: Any = DEFAULT_ESO_BANDWIDTH, settings: FilterSettings | None = None) -> None:
+        super().__init__(n, settings)
         self.noise = noise
         self.omega = _per_joint(bandwidth, n, "bandwidth")              # ω_o, rad/s
         self.omega2 = self.omega * self.omega
@@ -353,8 +353,8 @@ class KFMomentumObserver(Observer):
     name = "kfmo"
 
     def __init__(self, n: int, noise: MomentumNoise | None = None, *,
-                 initial_covariance: float = 1.0) -> None:
-        super().__init__(n)
+                 initial_covariance: float = 1.0, settings: FilterSettings | None = None) -> None:
+        super().__init__(n, settings)
         self.noise = _check_noise(noise, n)
         if not (np.isfinite(initial_covariance) and initial_covariance > 0.0):
             raise ValueError(f"initial_covariance must be a positive number, got {initial_covariance}")
@@ -437,13 +437,14 @@ class SageHusaKFMomentumObserver(KFMomentumObserver):
     name = "sh_akfmo"
 
     def __init__(self, n: int, noise: MomentumNoise | None = None, *, initial_covariance: float = 1.0,
-                 forgetting: float = SAGE_HUSA_FORGETTING, adapt_q: bool = True, adapt_r: bool = False) -> None:
+                 forgetting: float = SAGE_HUSA_FORGETTING, adapt_q: bool = True, adapt_r: bool = False,
+                 settings: FilterSettings | None = None) -> None:
         if not 0.0 < forgetting < 1.0:
             raise ValueError(f"forgetting must be in (0, 1), got {forgetting}")
         self.weight = 1.0 - float(forgetting)                          # d
         self.adapt_q = bool(adapt_q)
         self.adapt_r = bool(adapt_r)
-        super().__init__(n, noise, initial_covariance=initial_covariance)
+        super().__init__(n, noise, initial_covariance=initial_covariance, settings=settings)
         self.R_min = R_FLOOR_FRACTION * self.R
 
     def reset(self) -> None:
@@ -489,7 +490,7 @@ class VBKFMomentumObserver(KFMomentumObserver):
     factorisation over joints; with (V4) only the cross-joint terms of (V3) are dropped).
     Intermediate iterations use the short form of (K5) (equal to Joseph's at the optimal gain);
     the last one is Joseph's. Defaults: τ = 8 (the paper's experiments set a parameter whose symbol
-    was lost to 8; Huang's τ is the natural reading), N = ``config.vb_iterations``.
+    was lost to 8; Huang's τ is the natural reading), N = ``filter.vb_iterations``.
 
     What it does on this model (measured, see the tests): a large innovation makes
     ``x⁽ⁱ⁾ − x⁻ = K ν`` large and inflates P⁻ along K; the reported τ_ext variance rises after an
@@ -501,14 +502,14 @@ class VBKFMomentumObserver(KFMomentumObserver):
     name = "vbkfmo_q"
 
     def __init__(self, n: int, noise: MomentumNoise | None = None, *, initial_covariance: float = 1.0,
-                 iterations: int = 3, tau: float = HUANG_TAU) -> None:
+                 iterations: int = 3, tau: float = HUANG_TAU, settings: FilterSettings | None = None) -> None:
         if not (isinstance(iterations, (int, np.integer)) and iterations >= 1):
             raise ValueError(f"iterations must be a positive integer, got {iterations}")
         if not (np.isfinite(tau) and tau > 0.0):
             raise ValueError(f"tau must be a positive number, got {tau}")
         self.iterations = int(iterations)
         self.prior_weight = float(tau)                                 # τ
-        super().__init__(n, noise, initial_covariance=initial_covariance)
+        super().__init__(n, noise, initial_covariance=initial_covariance, settings=settings)
 
     def _filter(self, h: float, p_pred: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray,
                 nu: np.ndarray) -> None:
@@ -540,20 +541,21 @@ _CLASSES: dict[str, type[Observer]] = {
 
 
 def make_momentum_observer(name: str, n: int, noise: MomentumNoise | None = None,
-                           config: EstimatorConfig | None = None, **gains: Any) -> Observer:
+                           settings: FilterSettings | None = None, **gains: Any) -> Observer:
     """Build the observer ``name`` (one of ``MOMENTUM_OBSERVER_NAMES``) for n joints.
 
-    From ``config`` (when given): ``initial_covariance`` (τ block of the KF's P_0) and
-    ``vb_iterations`` (N of ``vbkfmo_q``). ``config.vb_forgetting`` is not used: the Huang
-    prior (V2) is rebuilt every sample and keeps no statistics to forget; the Sage-Husa weight is
-    its own gain ``forgetting`` (b = 0.99). ``gains`` override everything (constructor keywords).
+    From ``settings`` (``filter.*``, when given): ``initial_covariance`` (τ block of the KF's P_0)
+    and ``vb_iterations`` (N of ``vbkfmo_q``); the observer keeps them as ``observer.settings``.
+    ``vb_forgetting`` is not used: the Huang prior (V2) is rebuilt every sample and keeps no
+    statistics to forget; the Sage-Husa weight is its own gain ``forgetting`` (b = 0.99). ``gains``
+    override everything (constructor keywords).
     """
     if name not in _CLASSES:
         raise ValueError(f"unknown momentum observer '{name}'; known: {', '.join(MOMENTUM_OBSERVER_NAMES)}")
-    options: dict[str, Any] = {}
-    if config is not None and name in ("kfmo", "sh_akfmo", "vbkfmo_q"):
-        options["initial_covariance"] = config.initial_covariance
+    options: dict[str, Any] = {"settings": settings}
+    if settings is not None and name in ("kfmo", "sh_akfmo", "vbkfmo_q"):
+        options["initial_covariance"] = settings.initial_covariance
         if name == "vbkfmo_q":
-            options["iterations"] = config.vb_iterations
+            options["iterations"] = settings.vb_iterations
     options.update(gains)
     return _CLASSES[name](n, noise, **options)

@@ -39,7 +39,7 @@ def panda(panda_config) -> RobotModel:
 @pytest.fixture(scope="session")
 def panda_trained(panda):
     """Residual model and filter tuning from a synthetic free-motion stream (Gaz friction)."""
-    from kvark_ros.tools.bench import train_synthetic
+    from kvark_ros.tools.synthetic import train_synthetic
     return train_synthetic(panda, "panda", seed=3, duration=20.0)
 
 
@@ -52,11 +52,12 @@ def rng() -> np.random.Generator:
 def ros():
     """The ROS node module imported against the suite's rclpy stand-in (``test/ros_stand_in``).
 
-    The stand-in is on ``sys.path`` only while a test module uses this fixture; the node module and
-    the stand-in's packages are removed from ``sys.modules`` afterwards, so nothing leaks.
+    The stand-in is on ``sys.path`` only while a test module uses this fixture; ``kvark_ros.ros`` (the
+    node and its helpers, bound to the stand-in's classes) and the stand-in's packages are removed from
+    ``sys.modules`` afterwards, so nothing leaks into the next module's fresh import.
     """
     def ours(name: str) -> bool:
-        return name.split(".")[0] in STAND_IN_MODULES or name == NODE_MODULE
+        return name.split(".")[0] in STAND_IN_MODULES or name == "kvark_ros.ros" or name.startswith("kvark_ros.ros.")
 
     saved = {name: module for name, module in sys.modules.items() if ours(name)}
     for name in saved:
@@ -69,6 +70,7 @@ def ros():
         assert rclpy.STAND_IN, "the stand-in, not a real rclpy, must be under test here"
         yield SimpleNamespace(
             node=node_module, rclpy=rclpy, core=importlib.import_module("ros_stand_in_core"),
+            parameters=importlib.import_module("kvark_ros.ros.parameters"),
             Parameter=importlib.import_module("rclpy.parameter").Parameter,
             builtin=importlib.import_module("builtin_interfaces.msg"), std=importlib.import_module("std_msgs.msg"),
             sensor=importlib.import_module("sensor_msgs.msg"), diag=importlib.import_module("diagnostic_msgs.msg"),

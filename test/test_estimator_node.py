@@ -27,11 +27,10 @@ from scipy.stats import chi2
 from kvark_ros.core.config import flatten_parameters, parameter_defaults
 from kvark_ros.core.estimator import Status
 from kvark_ros.core.model_store import load_model, save_model
+from kvark_ros.core.training import train_model
+from kvark_ros.io import CommandSeries, RecordedRun, read_run, write_run
 from kvark_ros.io.alignment import estimator_inputs
-from kvark_ros.io.bag import CommandSeries, RecordedRun, read_run, write_run
-from kvark_ros.ros.contact import ContactDetector
 from kvark_ros.tools.replay import run_observer
-from kvark_ros.tools.train import train_model
 
 from conftest import debounced_margin
 
@@ -360,28 +359,28 @@ def test_contact_flag_rises_after_the_debounce_and_falls_back(ros, make_node, co
     assert 0.5 < start < end < 1.8
     node = make_node()
     statistics = []
-    update = node._contact.update
+    update = node._estimator.contact.update
 
     def recording_update(stamp, tau, covariance):
         flag = update(stamp, tau, covariance)
-        statistics.append(node._contact.statistic)
+        statistics.append(node._estimator.contact.statistic)
         return flag
 
-    node._contact.update = recording_update
+    node._estimator.contact.update = recording_update
     feed(ros, bag_messages(ros, collision_bag))
     got = outputs(ros)
     flag = np.array(got.contact)
     free = got.stamp < start
-    margin = debounced_margin(got.stamp[free], np.array(statistics)[free], node._contact.threshold,
-                              node_config.contact_debounce)
+    margin = debounced_margin(got.stamp[free], np.array(statistics)[free], node._estimator.contact.threshold,
+                              node_config.contact.debounce)
     assert not flag[free].any(), f"no contact before the push (threshold/statistic margin {margin:.3f})"
     assert margin > 1.0
     first = got.stamp[flag][0]
-    debounce = node_config.contact_debounce
+    debounce = node_config.contact.debounce
     assert start + debounce <= first <= end
     assert flag[(got.stamp > first) & (got.stamp < end)].mean() > 0.5
     assert not flag[got.stamp > end + 0.2].any(), "the flag falls back after the push"
-    assert node._contact.threshold == pytest.approx(chi2.ppf(node_config.contact_confidence, 7))
+    assert node._estimator.contact.threshold == pytest.approx(chi2.ppf(node_config.contact.confidence, 7))
 
 
 # --------------------------------------------------------------------------- parameters and services
@@ -389,10 +388,10 @@ def test_contact_flag_rises_after_the_debounce_and_falls_back(ros, make_node, co
 
 def test_parameters_declared_with_descriptors_for_every_config_key(ros, make_node):
     node = make_node()
-    assert set(ros.node.PARAMETERS) == set(parameter_defaults())
-    for name, spec in ros.node.PARAMETERS.items():
+    assert set(ros.parameters.PARAMETERS) == set(parameter_defaults())
+    for name, spec in ros.parameters.PARAMETERS.items():
         descriptor = node.describe_parameter(name)
-        assert descriptor.read_only == (name not in ros.node.RUNTIME_FIELDS)
+        assert descriptor.read_only == (name not in ros.parameters.RUNTIME_KEYS)
         assert descriptor.description and descriptor.additional_constraints
     assert node.describe_parameter("wrench.damping").floating_point_range[0].to_value == 10.0
     assert node.describe_parameter("input.queue_depth").integer_range[0].from_value == 1
@@ -403,14 +402,14 @@ def test_runtime_parameter_changes(ros, make_node):
     node = make_node()
     P = ros.Parameter
     [result] = node.set_parameters([P("contact.debounce", value=0.1)])
-    assert result.successful and node._config.contact_debounce == 0.1 and node._contact.debounce == 0.1
+    assert result.successful and node._config.contact.debounce == 0.1 and node._estimator.contact.debounce == 0.1
     [result] = node.set_parameters([P("filter.ewma_rate", value=0.05)])
-    assert result.successful and node._estimator.observer.config.ewma_rate == 0.05
-    assert node._estimator.config.ewma_rate == 0.05
+    assert result.successful and node._estimator.observer.settings.ewma_rate == 0.05
+    assert node._estimator.config.filter.ewma_rate == 0.05
     [result] = node.set_parameters([P("wrench.damping", value=1)])          # an integer is a number too
-    assert result.successful and node._estimator.config.wrench_damping == 1.0
+    assert result.successful and node._estimator.config.wrench.damping == 1.0
     [result] = node.set_parameters([P("contact.confidence", value=0.999)])
-    assert result.successful and node._contact.threshold == pytest.approx(chi2.ppf(0.999, 7))
+    assert result.successful and node._estimator.contact.threshold == pytest.approx(chi2.ppf(0.999, 7))
     timer = node._timer
     [result] = node.set_parameters([P("diagnostics.period", value=0.25)])
     assert result.successful and node._timer is not timer and node._timer.timer_period_ns == 250_000_000
@@ -425,12 +424,12 @@ def test_runtime_parameter_changes(ros, make_node):
                               ("contact.debounce", "soon", "a number"), ("input.max_gap", 0.0, "(0.0, 10.0]")):
         [result] = node.set_parameters([P(name, value=value)])
         assert not result.successful and name in result.reason and text in result.reason, result.reason
-    assert node._config.contact_confidence == 0.999 and node._config.wrench_frame == "base"
+    assert node._config.contact.confidence == 0.999 and node._config.wrench.frame == "base"
 
 
 def test_structural_keys_are_refused_with_a_reason_even_without_read_only(ros, make_node):
     node = make_node()
-    refused = node._validate_parameters([ros.Parameter("filter.vb_iterations", value=5)])
+    refused = ros.parameters.check_update(node, [ros.Parameter("filter.vb_iterations", value=5)])
     assert not refused.successful and "restart" in refused.reason and "filter.vb_iterations" in refused.reason
 
 

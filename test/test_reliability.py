@@ -26,8 +26,7 @@ from kvark_ros.core.estimator import Estimator, Status
 from kvark_ros.core.model_store import save_model
 from kvark_ros.core.observers import make_observer
 from kvark_ros.tools import soak as soak_tool
-from kvark_ros.tools.bench import train_synthetic
-from kvark_ros.tools.synthetic import synthetic_stream
+from kvark_ros.tools.synthetic import synthetic_stream, train_synthetic
 
 ROOT = Path(__file__).resolve().parents[1]
 N = 7
@@ -55,7 +54,7 @@ def stream(panda):
 
 @pytest.fixture(scope="module")
 def estimator(panda_config, panda, trained):
-    return Estimator(panda_config, panda, make_observer(panda_config.observer, trained, panda_config))
+    return Estimator(panda_config, panda, make_observer(panda_config.observer, trained, panda_config.filter))
 
 
 def fresh(estimator: Estimator) -> Estimator:
@@ -148,7 +147,7 @@ def test_gaps_longer_than_max_gap_reset_the_filter(estimator, stream, panda_conf
     run_samples(estimator, [sample(stream, k) for k in range(WARM)])
     previous = float(stream.stamp[WARM - 1])
     _, q, qd, tau_m = sample(stream, WARM)
-    stamp = previous + panda_config.max_gap + max(extra, 1e-9 * previous)
+    stamp = previous + panda_config.input.max_gap + max(extra, 1e-9 * previous)
     assert estimator.step(stamp, q, qd, tau_m) is None
     assert estimator.status == Status.GAP_RESET and estimator.counts[Status.GAP_RESET] == 1
     # The filter starts over: the next sample estimates from the reset state.
@@ -161,7 +160,7 @@ def test_gaps_longer_than_max_gap_reset_the_filter(estimator, stream, panda_conf
 def test_a_gap_of_at_most_max_gap_does_not_reset(estimator, stream, panda_config):
     fresh(estimator)
     run_samples(estimator, [sample(stream, k) for k in range(WARM)])
-    stamp = float(stream.stamp[WARM - 1]) + 0.999 * panda_config.max_gap
+    stamp = float(stream.stamp[WARM - 1]) + 0.999 * panda_config.input.max_gap
     assert estimator.step(stamp, *sample(stream, WARM)[1:]) is not None
     assert estimator.counts[Status.GAP_RESET] == 0
 
@@ -271,7 +270,7 @@ def node(ros, trained, tmp_path_factory):
 
 def reset_node(node) -> None:
     node._estimator.reset()
-    node._reset_inputs()
+    node._pairer.reset()
     node._counts.clear()
     node._estimator.counts.clear()
 
@@ -372,7 +371,7 @@ def drive(ros, node, messages) -> tuple[dict, dict]:
 
 
 def counter_key(ros, name: str | None) -> str | None:
-    return getattr(ros.node.Drop, name) if name in vars(ros.node.Drop) else name
+    return getattr(ros.node.Drop, name) if name is not None and hasattr(ros.node.Drop, name) else name
 
 
 @FEW
@@ -397,7 +396,7 @@ def test_node_survives_bad_messages_and_counts_them(ros, node, stream, faults, s
         longest = max(longest, run)
     for fault in set(faults.values()):
         key = counter_key(ros, EXPECTED_COUNTER[fault])
-        if fault == "stale_command" and longest * DT <= node._config.command_max_age + DT / 2:
+        if fault == "stale_command" and longest * DT <= node._config.input.command_max_age + DT / 2:
             continue                              # a short run is bridged by the previous command
         if key is not None:
             assert counts.get(key, 0) > 0, (fault, counts)

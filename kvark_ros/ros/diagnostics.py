@@ -1,0 +1,103 @@
+"""The node's ``/diagnostics`` statuses (model, input, filter), built from plain numbers.
+
+Kept apart from the node so that the node is the adapter only; every text and threshold here is what
+``/diagnostics`` has shown since the node exists.
+"""
+from __future__ import annotations
+
+import math
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+from kvark_ros.core.estimator import Status
+from kvark_ros.core.pairing import Reject
+
+SERVICE_RESET = "reset: ~/reset service"
+NOT_READY = "dropped: no estimator (model not loaded or waiting for robot_description)"
+NOT_PROBLEMS = {Status.OK, Status.WARMUP, Reject.OTHER_JOINTS, Reject.EARLY_COMMAND, SERVICE_RESET}
+RESETS = (Status.GAP_RESET, Status.DIVERGED_RESET, Reject.TIME_JUMP, SERVICE_RESET)
+LEVELS = (DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR)
+
+
+@dataclass
+class Window:
+    """What happened since the previous ``/diagnostics`` message."""
+
+    seconds: float
+    received: int
+    published: int
+    counts: Counter[str]            # every count since start
+    fresh: dict[str, int]           # the counts' growth in this window
+
+
+class StatusBuilder:
+    """Makes ``DiagnosticStatus`` messages named ``<node>: <part>`` for one robot."""
+
+    def __init__(self, node_name: str, hardware_id: str) -> None:
+        self.node_name = node_name
+        self.hardware_id = hardware_id
+
+    def status(self, level: int, name: str, message: str, values: dict[str, Any]) -> DiagnosticStatus:
+        return DiagnosticStatus(level=LEVELS[level], name=f"{self.node_name}: {name}", message=message,
+                                hardware_id=self.hardware_id,
+                                values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
+
+    def model(self, values: dict[str, Any], problem: str | None, reload_problem: str | None) -> DiagnosticStatus:
+        """ERROR without an estimator, WARN after a failed reload, else OK."""
+        if problem is not None:
+            return self.status(2, "model", f"no estimator: {problem}", values)
+        if reload_problem is not None:
+            return self.status(1, "model", f"last reload failed, previous model kept: {reload_problem}", values)
+        return self.status(0, "model", "model loaded", values)
+
+    def input(self, window: Window, totals: dict[str, Any], missing_detail: str) -> DiagnosticStatus:
+        """Input and output rates and every drop reason; WARN when output lags input or something was dropped."""
+        span = window.seconds
+        rate_in = window.received / span if span > 0 else math.nan
+        rate_out = window.published / span if span > 0 else math.nan
+        values: dict[str, Any] = {"input_rate_hz": f"{rate_in:.1f}", "output_rate_hz": f"{rate_out:.1f}",
+                                  "window_s": f"{span:.3f}", **totals}
+        values.update({key: f"{total} (+{window.fresh.get(key, 0)})" for key, total in sorted(window.counts.items())})
+        if missing_detail:
+            values["last_missing_joint"] = missing_detail
+        problems = {key: number for key, number in window.fresh.items() if key not in NOT_PROBLEMS}
+        summary = "; ".join(f"{number} × {key}" for key, number in sorted(problems.items(), key=lambda kv: -kv[1]))
+        if window.received == 0:
+            return self.status(1, "input", f"no joint_states in the last {span:.1f} s", values)
+        if window.published < 0.9 * window.received:
+            return self.status(1, "input", f"output {rate_out:.0f} Hz below input {rate_in:.0f} Hz"
+                               + (f": {summary}" if summary else ""), values)
+        if problems:
+            return self.status(1, "input", f"input {rate_in:.0f} Hz, output {rate_out:.0f} Hz; {summary}", values)
+        return self.status(0, "input", f"input {rate_in:.0f} Hz, output {rate_out:.0f} Hz", values)
+
+    def filter(self, window: Window, contact: Any, covariance: np.ndarray | None,
+               covariance_note: str) -> DiagnosticStatus:
+        """ERROR if P is not finite positive definite, WARN after a reset in this window, else the contact
+        state (``contact``: the estimator's ContactDetector, None without an estimator)."""
+        values: dict[str, Any] = {key: window.counts.get(key, 0) for key in RESETS}
+        if contact is not None:
+            values.update({"contact": contact.flag, "contact_statistic": f"{contact.statistic:.3g}",
+                           "contact_threshold": f"{contact.threshold:.3g}", "contact_confidence": contact.confidence,
+                           "contact_covariance_not_positive_definite": contact.invalid_covariances})
+        healthy = True
+        if covariance is None:
+            values["P"] = covariance_note
+        else:
+            try:
+                np.linalg.cholesky(covariance)
+                healthy = bool(np.isfinite(covariance).all())
+            except np.linalg.LinAlgError:
+                healthy = False
+            values["P"] = "finite, positive definite" if healthy else "NOT positive definite"
+        if not healthy:
+            return self.status(2, "filter", "covariance P is not finite positive definite", values)
+        resets = {key: window.fresh[key] for key in RESETS if window.fresh.get(key)}
+        if resets.get(Status.DIVERGED_RESET) or resets.get(Reject.TIME_JUMP) or resets.get(Status.GAP_RESET):
+            text = "; ".join(f"{number} × {key}" for key, number in resets.items())
+            return self.status(1, "filter", text, values)
+        return self.status(0, "filter", "contact" if contact is not None and contact.flag else "no contact", values)

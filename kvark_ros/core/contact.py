@@ -78,6 +78,13 @@ class ContactDetector:
         self.statistic = math.nan
         self._since: float | None = None
 
+    def continue_from(self, other: "ContactDetector") -> None:
+        """Take over ``other``'s flag, last statistic and pending change (a rebuilt estimator continuing).
+
+        The invalid-covariance count is not copied: it counts this detector's own updates.
+        """
+        self.flag, self.statistic, self._since = other.flag, other.statistic, other._since
+
     @staticmethod
     def statistic_of(tau: np.ndarray, covariance: np.ndarray) -> float | None:
         """``τᵀ S⁻¹ τ`` through a Cholesky factor; ``None`` if S is not finite positive definite."""

@@ -122,6 +122,26 @@ class Estimator:
         self._p_prev = np.zeros(self.robot.n)
         self._u_prev = np.zeros(self.robot.n)
 
+    def continue_from(self, other: "Estimator") -> None:
+        """Continue from ``other``'s state, so that swapping it for this one changes no output (model reload).
+
+        Copies the previous sample (stamp, p, u), ``status``, the observer's filter state and the
+        contact detector's state; ``counts`` stay this estimator's own. Raises ``ValueError`` (and
+        changes nothing) unless both have the same joints and the same observer class and name, or
+        if the observer states do not fit (``Observer.load_state``).
+        """
+        if self.config.joint_names != other.config.joint_names:
+            raise ValueError("cannot continue from an estimator with other joints")
+        mine, theirs = self.observer, other.observer
+        if type(mine) is not type(theirs) or mine.name != theirs.name:
+            raise ValueError(f"cannot continue observer '{mine.name}' ({type(mine).__name__}) from "
+                             f"'{theirs.name}' ({type(theirs).__name__})")
+        mine.load_state(theirs.state())
+        self._stamp = other._stamp
+        self._p_prev, self._u_prev = other._p_prev.copy(), other._u_prev.copy()
+        self.status = other.status
+        self.contact.continue_from(other.contact)
+
     def _reject(self, status: str) -> None:
         self.status = status
         self.counts[status] += 1

@@ -1,6 +1,7 @@
 """The interface every external-torque observer implements, and the static filter tuning."""
 from __future__ import annotations
 
+import copy
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, fields
 from typing import Any, Mapping, Protocol
@@ -20,7 +21,68 @@ class ResidualPredictor(Protocol):
     def predict(self, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 
 
-class Observer(ABC):
+def _shape(value: Any) -> Any:
+    """The shape signature of a state value: an array's shape, a tuple's shapes, ``()`` for a scalar."""
+    if isinstance(value, np.ndarray):
+        return value.shape
+    if isinstance(value, (tuple, list)):
+        return tuple(None if item is None else _shape(item) for item in value)
+    return ()
+
+
+class Stateful:
+    """Something whose filter state can be copied out and loaded into another instance.
+
+    ``STATE`` names the attributes that hold the state (what ``reset`` assigns and what ``step``
+    creates lazily); everything else (model, tuning, settings) belongs to the instance. A
+    ``Stateful`` attribute (a component such as the windowed VB) contributes its own ``state()``.
+    Used to continue a rebuilt estimator from the old one without a restart.
+    """
+
+    STATE: tuple[str, ...] = ()
+
+    def state(self) -> dict[str, Any]:
+        """Deep copies of the ``STATE`` attributes (components as their own state dicts)."""
+        return {name: _capture(getattr(self, name)) for name in self.STATE}
+
+    def load_state(self, state: Mapping[str, Any]) -> None:
+        """Set the ``STATE`` attributes to deep copies of ``state``'s (from ``state()`` of a like instance).
+
+        Raises ``ValueError``, changing nothing, if the keys or the array shapes differ. A value that
+        is ``None`` on either side (not yet set by a first step) matches any shape.
+        """
+        self._check_state(state)
+        for name in self.STATE:
+            current = getattr(self, name)
+            if isinstance(current, Stateful):
+                current.load_state(state[name])
+            else:
+                setattr(self, name, copy.deepcopy(state[name]))
+
+    def _check_state(self, state: Mapping[str, Any]) -> None:
+        """Raise ``ValueError`` unless ``state`` fits this instance (``load_state``)."""
+        owner = type(self).__name__
+        if not isinstance(state, Mapping) or set(state) != set(self.STATE):
+            keys = sorted(state) if isinstance(state, Mapping) else type(state).__name__
+            raise ValueError(f"{owner} state must have the keys {sorted(self.STATE)}, got {keys}")
+        for name in self.STATE:
+            current, value = getattr(self, name), state[name]
+            if isinstance(current, Stateful):
+                if not isinstance(value, Mapping):
+                    raise ValueError(f"{owner} state '{name}': expected the component's state, got {value!r}")
+                current._check_state(value)
+            elif isinstance(value, Mapping):
+                raise ValueError(f"{owner} state '{name}': this {owner} has no such component")
+            elif current is not None and value is not None and _shape(current) != _shape(value):
+                raise ValueError(f"{owner} state '{name}' has shape {_shape(value)}, expected {_shape(current)}")
+
+
+def _capture(value: Any) -> Any:
+    """A state value to hand out: a component's state dict, else a deep copy."""
+    return value.state() if isinstance(value, Stateful) else copy.deepcopy(value)
+
+
+class Observer(Stateful, ABC):
     """Estimates τ_ext (n,) N·m and its covariance P (n, n) N²·m² from momentum samples.
 
     The ``Estimator`` computes the generalized momentum ``p = M q̇`` and its input
@@ -30,8 +92,13 @@ class Observer(ABC):
     ``settings`` are the ``filter.*`` keys the observer was built with (``None`` for an observer
     built from explicit gains only); they are read at construction and changed only through
     ``configure``.
+
+    ``STATE`` (see ``Stateful``): every concrete observer lists the attributes ``reset`` assigns,
+    those ``step`` creates lazily and ``prediction`` if it sets it, extending its parent's tuple;
+    ``state()`` and ``load_state()`` move them to a rebuilt observer of the same class.
     """
 
+    STATE: tuple[str, ...] = ()
     name: str = ""
     uses_residual_model: bool = False
     reports_covariance: bool = True     # False: step returns P = None (e.g. the momentum observer)

@@ -87,6 +87,7 @@ class KVARKFilter(Observer):
     """
 
     uses_residual_model = True
+    STATE = Observer.STATE + ("prediction", "x", "P", "empirical", "nis_mean", "Sigma_d", "vb_dof", "vb_scale")
 
     def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning,
                  settings: FilterSettings, name: str | None = None) -> None:

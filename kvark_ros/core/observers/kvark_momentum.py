@@ -48,6 +48,9 @@ class KVARKMomentumFilter(KFMomentumObserver):
     """
 
     uses_residual_model = True
+    # R_min is reassigned by reset but derives from the model's R: a constant, not state.
+    STATE = KFMomentumObserver.STATE + ("prediction", "R_adaptive", "nis_mean", "Sigma_d", "vb_dof", "vb_scale",
+                                        "window", "onset")
 
     def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning, noise: MomentumNoise,
                  settings: FilterSettings, name: str | None = None) -> None:

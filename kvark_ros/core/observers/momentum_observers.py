@@ -249,6 +249,7 @@ class MomentumObserver(Observer):
 
     name = "momentum"
     reports_covariance = False
+    STATE = Observer.STATE + ("r",)
 
     def __init__(self, n: int, noise: MomentumNoise | None = None, *, gain: Any = DEFAULT_MOMENTUM_GAIN,
                  discretization: str = "exact", settings: FilterSettings | None = None) -> None:
@@ -295,6 +296,7 @@ class ExtendedStateObserver(Observer):
 
     name = "eso"
     reports_covariance = False
+    STATE = Observer.STATE + ("p_hat", "tau")
 
     def __init__(self, n: int, noise: MomentumNoise | None = None, *,
                  bandwidth: Any = DEFAULT_ESO_BANDWIDTH, settings: FilterSettings | None = None) -> None:
@@ -351,6 +353,7 @@ class KFMomentumObserver(Observer):
     """
 
     name = "kfmo"
+    STATE = Observer.STATE + ("p_hat", "tau", "a", "b", "c")     # the Q_d cache (_q, _q_step) is not state
 
     def __init__(self, n: int, noise: MomentumNoise | None = None, *,
                  initial_covariance: float = 1.0, settings: FilterSettings | None = None) -> None:
@@ -435,6 +438,7 @@ class SageHusaKFMomentumObserver(KFMomentumObserver):
     """
 
     name = "sh_akfmo"
+    STATE = KFMomentumObserver.STATE + ("q_tau_hat", "R_hat")
 
     def __init__(self, n: int, noise: MomentumNoise | None = None, *, initial_covariance: float = 1.0,
                  forgetting: float = SAGE_HUSA_FORGETTING, adapt_q: bool = True, adapt_r: bool = False,
@@ -500,6 +504,7 @@ class VBKFMomentumObserver(KFMomentumObserver):
     """
 
     name = "vbkfmo_q"
+    STATE = KFMomentumObserver.STATE                           # the inverse-Wishart prior is rebuilt every step
 
     def __init__(self, n: int, noise: MomentumNoise | None = None, *, initial_covariance: float = 1.0,
                  iterations: int = 3, tau: float = HUANG_TAU, settings: FilterSettings | None = None) -> None:

@@ -35,6 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from kvark_ros.core.observers.base import Stateful
+
 
 @dataclass(frozen=True)
 class Jump:
@@ -51,13 +53,15 @@ class Jump:
     information: np.ndarray
 
 
-class OnsetDetector:
+class OnsetDetector(Stateful):
     """The GLR hypotheses of n joints, M onsets each (module docstring); ``alarms``: joint alarms since reset.
 
     State (n, M): ``ep``, ``et`` the state error e⁻ (after ``step``: of the next prediction) of a
     unit jump at each hypothesised onset, ``d`` and ``c`` the sums d_θ and C_θ; ``slot`` the ring
     position of the newest onset.
     """
+
+    STATE = ("ep", "et", "d", "c", "slot", "alarms")
 
     def __init__(self, n: int, threshold: float, window: int) -> None:
         """``threshold``: on 2 ln Λ, > 0; ``window``: M, onsets kept per joint."""

@@ -24,11 +24,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from kvark_ros.core.observers.base import Stateful
+
 WINDOW_SNAPSHOTS = 5    # staggered windows, one closing every vb_window / 5 samples
 WINDOW_MAX_RATIO = 1e4  # Σ_d never exceeds this multiple of the prior Σ_d0
 
 
-class WindowVB:
+class WindowVB(Stateful):
     """The snapshots of τ_ext and the IW statistics of the windowed VB, for n joints (module docstring).
 
     State (arrays (n,) or (n, S)): ``z`` ẑ_j N·m, ``zz`` Var z_j N²·m², ``pz`` and ``tz``
@@ -36,6 +38,8 @@ class WindowVB:
     current density estimate N²·m²/s, ``scale``/``dof`` the forgotten data parts of Υ and λ.
     Per step the filter calls ``predict`` before and ``update`` after its own (p, τ) update.
     """
+
+    STATE = ("z", "zz", "pz", "tz", "age", "count", "q", "scale", "dof")
 
     def __init__(self, prior_density: np.ndarray, window: int, forgetting: float, prior_dof: float) -> None:
         """``prior_density``: q_0 (n,) N²·m²/s; ``window``: L samples; ``forgetting``: ρ; ``prior_dof``: ν_0."""

@@ -36,6 +36,7 @@ from conftest import debounced_margin
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = "/kvark_estimator"
+UNCERTAINTY_TOPICS = (f"{OUT}/external_joint_torque_stddev", f"{OUT}/external_wrench_covariance")
 TOPICS = ("/joint_states", "/effort_commands")
 
 
@@ -53,9 +54,14 @@ def make_node(ros, model_dir):
     """Start a fresh stand-in context and a node with config/panda.yaml's parameters (``__`` for ``.``)."""
     nodes = []
 
-    def make(directory: Path = model_dir, **changes):
+    def make(directory: Path = model_dir, listen: bool = True, **changes):
+        """``listen``: a subscriber on the uncertainty topics exists (the node publishes them only then)."""
         ros.core.reset()
         ros.rclpy.init()
+        if listen:
+            listener = ros.rclpy.node.Node("listener")
+            for topic in UNCERTAINTY_TOPICS:
+                listener.create_subscription(ros.std.Float64MultiArray, topic, lambda msg: None, 10)
         overrides = [ros.Parameter(name, value=value) for name, value in node_parameters(directory, **changes).items()]
         node = ros.node.EstimatorNode(parameter_overrides=overrides)
         nodes.append(node)
@@ -124,10 +130,26 @@ def bag_messages(ros, path: Path) -> list[tuple[int, str, object]]:
 
 
 def feed(ros, messages) -> None:
-    """Deliver messages to their topics in order, the stand-in clock at each message's log time."""
+    """Deliver messages to their topics in order, the stand-in clock at each message's log time (which is
+    also when it was published)."""
     for log_ns, topic, msg in messages:
         ros.core.set_time(nanoseconds=log_ns)
         ros.core.GRAPH.deliver(topic, msg)
+
+
+def backlogged(messages, seed: int) -> list[tuple[int, int, str, object]]:
+    """(published ns, delivered ns, topic, message) as an executor that falls behind delivers a bag's
+    messages: in bursts of 1-8 samples, all joint states of a burst before its commands (each topic in its
+    own order, each command after its state), delivered when the burst's last message was published."""
+    rng = np.random.default_rng(seed)
+    out, k = [], 0
+    while k < len(messages):
+        burst = messages[k:k + 2 * int(rng.integers(1, 9))]
+        k += len(burst)
+        delivered = burst[-1][0]
+        out += [(log_ns, delivered, topic, msg) for log_ns, topic, msg in burst if topic == "/joint_states"]
+        out += [(log_ns, delivered, topic, msg) for log_ns, topic, msg in burst if topic != "/joint_states"]
+    return out
 
 
 def stamp_of(msg) -> float:
@@ -210,6 +232,81 @@ def test_node_gives_the_same_torque_and_wrench_as_replay(ros, make_node, contact
     assert status["model"].level == ros.diag.DiagnosticStatus.OK
     assert status["input"].level == ros.diag.DiagnosticStatus.OK, status["input"].message
     assert float(values_of(status["input"])["input_rate_hz"]) == pytest.approx(500, rel=0.01)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_pairs_hold_when_the_executor_falls_behind(ros, make_node, contact_bag, model_dir, node_config, seed):
+    """Joint states k+1… delivered before command k, in bursts: ordered by publication time (the message
+    info) the node still gives kvark replay's τ_ext and wrench. Ordered by arrival instead (what the node
+    did before), the same delivery mispairs: the check below would fail."""
+    stamps, expected, _ = replay_of(node_config, model_dir, contact_bag)
+    delivery = backlogged(bag_messages(ros, contact_bag), seed)
+    for informed in (True, False):
+        make_node()
+        for published_ns, delivered_ns, topic, msg in delivery:
+            ros.core.set_time(nanoseconds=delivered_ns)
+            ros.core.GRAPH.deliver(topic, msg, published_ns=published_ns if informed else delivered_ns)
+        got = outputs(ros)
+        same = (np.array_equal(got.stamp, stamps) and np.abs(got.tau - expected.tau_ext[expected.valid]).max() <= 1e-9
+                and np.abs(got.wrench - expected.wrench[expected.valid]).max() <= 1e-9)
+        assert same == informed, "publication order pairs right, arrival order does not"
+
+
+def test_reloading_the_same_model_mid_run_changes_no_output(ros, make_node, contact_bag, model_dir, node_config):
+    stamps, expected, _ = replay_of(node_config, model_dir, contact_bag)
+    messages = bag_messages(ros, contact_bag)
+    node = make_node()
+    feed(ros, messages[:1200])
+    old = node._estimator
+    assert ros.core.GRAPH.call(f"{OUT}/reload_model").success and node._estimator is not old
+    feed(ros, messages[1200:])
+    got = outputs(ros)
+    assert np.array_equal(got.stamp, stamps)
+    assert np.abs(got.tau - expected.tau_ext[expected.valid]).max() <= 1e-9
+
+
+def test_lost_joint_states_are_counted_and_warned_about(ros, make_node, contact_bag):
+    """25 of the first 1000 samples never arrive (dropped before any callback): 2.5 % > diagnostics.max_loss."""
+    messages = bag_messages(ros, contact_bag)[:2000]
+    dropped = {300 + 37 * i for i in range(25)}                # sample indices, each a state and its command
+    kept = [m for i, m in enumerate(messages) if i // 2 not in dropped]
+    node = make_node()
+    feed(ros, kept)
+    assert node._pairer.lost == 25
+    ros.core.set_time(nanoseconds=kept[-1][0] + 1)
+    status = diagnostics(ros)["input"]
+    assert status.level == ros.diag.DiagnosticStatus.WARN and "25 joint states lost" in status.message
+    assert values_of(status)["joint_states_lost"] == "25"
+
+
+def test_uncertainty_topics_only_while_someone_listens(ros, make_node, contact_bag):
+    node = make_node(listen=False)
+    messages = bag_messages(ros, contact_bag)
+    feed(ros, messages[:400])
+    assert len(outputs(ros).stamp) > 150 and outputs(ros).stddev.size == 0
+    listener = ros.rclpy.node.Node("late_listener")
+    listener.create_subscription(ros.std.Float64MultiArray, UNCERTAINTY_TOPICS[0], lambda msg: None, 10)
+    feed(ros, messages[400:1000])
+    published = len(outputs(ros).stddev)
+    assert 300 - ros.node.SUBSCRIBER_CHECK <= published <= 300, "from the next check on (every 100 estimates)"
+    assert node._published > published
+
+
+def test_a_joint_named_twice_is_rejected(ros, make_node, contact_bag):
+    messages = bag_messages(ros, contact_bag)[:200]
+    node = make_node()
+    doubled = []
+    for log_ns, topic, msg in messages:
+        if topic == "/joint_states" and 60 <= log_ns / 2e6 < 70:
+            msg = copy.deepcopy(msg)
+            msg.name = list(msg.name) + ["panda_joint1"]
+            msg.position = array.array("d", list(msg.position) + [9.0])
+            msg.velocity = array.array("d", list(msg.velocity) + [0.0])
+            msg.effort = array.array("d", list(msg.effort) + [0.0])
+        doubled.append((log_ns, topic, msg))
+    feed(ros, doubled)
+    assert node._counts[ros.node.Drop.REPEATED_JOINT] == 10
+    assert np.abs(outputs(ros).tau).max() < 50.0, "the 9 rad joint never reached the filter"
 
 
 def test_reordered_and_extra_joints_give_the_same_outputs(ros, make_node, contact_bag):
@@ -465,7 +562,7 @@ def test_reset_and_reload_services(ros, make_node, contact_bag, model_dir, tmp_p
     assert not reply.success and "previous model kept" in reply.message and "model file not found" in reply.message
     assert node._estimator is old
     feed(ros, messages[104:200])
-    assert len(outputs(ros).stamp) == count + 1 + 47     # warm-up after the reload
+    assert len(outputs(ros).stamp) == count + 1 + 48     # the reloaded estimator continues: no warm-up
     ros.core.set_time(5.0)
     assert diagnostics(ros)["model"].level == ros.diag.DiagnosticStatus.WARN
 

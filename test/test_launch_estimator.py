@@ -124,7 +124,8 @@ class TestEstimatorTopics(unittest.TestCase):
         self.assertTrue(all(len(m.data) == 36 for m in got["covariance"]) and got["covariance"])
         self.assertTrue(got["contact"])
         statuses = {s.name: s for array in got["diagnostics"] for s in array.status}
-        self.assertEqual(statuses["kvark_estimator: model"].level, DiagnosticStatus.OK)
+        [model] = [s for name, s in statuses.items() if name.endswith("/kvark_estimator: model")]   # fully qualified
+        self.assertEqual(model.level, DiagnosticStatus.OK)
 
 
 @launch_testing.post_shutdown_test()

@@ -160,6 +160,9 @@ KEYS: tuple[Key, ...] = (
          **_unit(0.5, 1.0, low_open=True, high_open=True)),
     _key("contact.debounce", "number", 0.02, "s the contact test must hold before the flag changes",
          runtime=True, **_unit(0.0, 1.0)),
+    _key("diagnostics.max_loss", "number", 0.01,
+         "share of joint states lost (gaps in their stamps) above which /diagnostics warns", runtime=True,
+         **_unit(0.0, 1.0)),
     _key("diagnostics.period", "number", 1.0, "s between /diagnostics messages", runtime=True,
          **_unit(0.0, 60.0, low_open=True)),
 )

@@ -22,6 +22,11 @@ Pairing (:class:`StreamPairer`)
     Joint states must have increasing stamps: an older or repeated stamp is rejected as out of
     order; a jump back by more than ``max_gap`` is a new run (bag loop, simulator reset): the states
     still waiting are completed, then a :data:`RESET` item tells the caller to restart its filter.
+
+Loss (:attr:`StreamPairer.lost`)
+    Joint states that never arrived, counted from the stamps: the period is measured (an EWMA of the
+    regular steps) and a step longer than LOSS_GAP periods lost ``round(step / period) − 1`` states.
+    Messages dropped by a queue or the network reach no callback, so only their absence shows them.
 """
 from __future__ import annotations
 
@@ -33,6 +38,8 @@ import numpy as np
 
 MAX_PENDING = 8          # joint states waiting for their command before the oldest is completed without one
 RESET = None             # an item of a returned list: restart the filter before the samples after it
+LOSS_GAP = 1.5           # a gap between joint states longer than this many periods lost states
+PERIOD_RATE = 0.01       # EWMA rate of the measured joint-state period
 
 
 def stamp_seconds(sec: int, nanosec: int) -> float:
@@ -131,6 +138,8 @@ class StreamPairer:
         self.max_gap = max_gap
         self.max_pending = max_pending
         self.counts: Counter[str] = Counter() if counts is None else counts
+        self.lost = 0                                            # joint states missing from the stamps
+        self._period: float | None = None                        # measured joint-state period, s
         self.reset()
 
     def reset(self) -> None:
@@ -189,7 +198,10 @@ class StreamPairer:
     def _check_stamp(self, stamp: float) -> list[Sample | None] | None:
         """None: out of order (counted). Else what a time jump completed, ending in RESET, or []."""
         previous = self._last_stamp
-        if previous is None or stamp > previous:
+        if previous is None:
+            return []
+        if stamp > previous:
+            self._count_loss(stamp - previous)
             return []
         if previous - stamp <= self.max_gap:
             self.counts[Reject.OUT_OF_ORDER] += 1
@@ -199,6 +211,16 @@ class StreamPairer:
         self.counts[Reject.TIME_JUMP] += 1
         done.append(RESET)
         return done
+
+    def _count_loss(self, step: float) -> None:
+        """Count the joint states a ``step`` (s) between two accepted ones skipped (module docstring)."""
+        period = self._period
+        if period is None:
+            self._period = step
+        elif step > LOSS_GAP * period:
+            self.lost += int(round(step / period)) - 1
+        else:
+            self._period = period + PERIOD_RATE * (step - period)
 
     def _decide(self, done: list[Sample | None]) -> None:
         """Pair or complete the oldest waiting states as far as the commands received allow.

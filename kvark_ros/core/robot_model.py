@@ -137,6 +137,14 @@ class RobotModel:
                    augmentation)
 
     @property
+    def root_link(self) -> str:
+        """Name of the URDF root link (the frame whose axes ``wrench.frame: base`` uses)."""
+        for frame in self.model.frames:
+            if frame.parentJoint == 0 and str(frame.type) == "BODY":
+                return frame.name
+        return "base"
+
+    @property
     def n(self) -> int:
         """Number of estimated joints."""
         return self.model.nv

@@ -32,6 +32,8 @@ class Window:
     published: int
     counts: Counter[str]            # every count since start
     fresh: dict[str, int]           # the counts' growth in this window
+    lost: int                       # joint states missing from the stamps' sequence in this window
+    max_loss: float                 # share of lost joint states above which the input status warns
 
 
 class StatusBuilder:
@@ -46,10 +48,16 @@ class StatusBuilder:
                                 hardware_id=self.hardware_id,
                                 values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
 
-    def model(self, values: dict[str, Any], problem: str | None, reload_problem: str | None) -> DiagnosticStatus:
-        """ERROR without an estimator, WARN after a failed reload, else OK."""
-        if problem is not None:
+    def model(self, config: Any, urdf_in_use: str, torque_source: str, estimator: Any, problem: str,
+              reload_problem: str | None) -> DiagnosticStatus:
+        """ERROR without an estimator (``problem`` says why), WARN after a failed reload, else OK."""
+        values = {"model_dir": config.model_dir, "observer": config.observer, "urdf": urdf_in_use or config.urdf,
+                  "joints": ",".join(config.joint_names), "torque_source": torque_source}
+        if estimator is None:
             return self.status(2, "model", f"no estimator: {problem}", values)
+        info = estimator.trained.info
+        values.update({"trained_samples": info.get("samples", "?"), "trained_with": info.get("kvark_ros_version", "?"),
+                       "residual_compensated": estimator.observer.uses_residual_model})
         if reload_problem is not None:
             return self.status(1, "model", f"last reload failed, previous model kept: {reload_problem}", values)
         return self.status(0, "model", "model loaded", values)
@@ -66,8 +74,13 @@ class StatusBuilder:
             values["last_missing_joint"] = missing_detail
         problems = {key: number for key, number in window.fresh.items() if key not in NOT_PROBLEMS}
         summary = "; ".join(f"{number} × {key}" for key, number in sorted(problems.items(), key=lambda kv: -kv[1]))
+        loss = window.lost / (window.lost + window.received) if window.lost + window.received else 0.0
+        values["loss_share"] = f"{loss:.4f}"
         if window.received == 0:
             return self.status(1, "input", f"no joint_states in the last {span:.1f} s", values)
+        if loss > window.max_loss:
+            return self.status(1, "input", f"{window.lost} joint states lost in {span:.1f} s ({loss:.1%} of the "
+                               f"input, above diagnostics.max_loss {window.max_loss:.1%})", values)
         if window.published < 0.9 * window.received:
             return self.status(1, "input", f"output {rate_out:.0f} Hz below input {rate_in:.0f} Hz"
                                + (f": {summary}" if summary else ""), values)

@@ -5,21 +5,16 @@ Run ``ros2 launch kvark_ros estimator.launch.py`` (or ``ros2 run kvark_ros estim
 paired with commands by ``kvark_ros.core.pairing`` and every number comes from
 ``kvark_ros.core.estimator.Estimator.step``, the same code ``kvark replay`` runs over a bag.
 
-Topics (relative names, remappable; the README's topics table)
-    in   ``joint_states`` (sensor_msgs/JointState), ``effort_commands`` (std_msgs/Float64MultiArray,
-         or sensor_msgs/JointState with ``torque_source: effort_commands_joint_state``),
-         ``robot_description`` (std_msgs/String, transient local). Sensor inputs use the
-         sensor-data QoS with depth ``input.queue_depth``.
-    out  ``~/external_joint_torque`` (JointState: effort = τ_ext in ``joint_names`` order, stamp of
-         the input), ``~/external_wrench`` (WrenchStamped at the ``ee_frame`` origin; frame_id = the
-         URDF root link for ``wrench.frame: base``, else ``ee_frame``), ``~/external_joint_torque_stddev``
-         (Float64MultiArray, √diag P, labelled with the joint names), ``~/external_wrench_covariance``
-         (Float64MultiArray, 6×6 row-major, fx fy fz tx ty tz), ``~/contact`` (Bool), ``/diagnostics``.
-         The uncertainty topics are silent for observers that report no covariance.
-    services ``~/reset`` and ``~/reload_model`` (std_srvs/Trigger).
+Topics, services and parameters: the README's tables. In: ``joint_states``, ``effort_commands``
+(Float64MultiArray, or JointState with ``torque_source: effort_commands_joint_state``),
+``robot_description``; out: ``~/external_joint_torque``, ``~/external_wrench``,
+``~/external_joint_torque_stddev``, ``~/external_wrench_covariance``, ``~/contact``, ``/diagnostics``;
+services ``~/reset``, ``~/reload_model``.
 
-Pairing: see ``kvark_ros.core.pairing``. The node gives each message its arrival count as the
-order key, so a command pairs with the newest joint state received before it. With
+Pairing: see ``kvark_ros.core.pairing``. Each message is ordered by when it was published (its
+message info's source timestamp; the receive time where the middleware gives none), so an executor
+that falls behind and takes joint state k+1 before command k still pairs command k with state k.
+Stamped commands (``effort_commands_joint_state``) are ordered by their header stamps. With
 ``torque_source: joint_states_effort`` the effort field of ``joint_states`` is τ_m (drivers that
 report the full measured joint torque, e.g. franka_ros2) and nothing is paired. A joint state with
 a zero stamp (a driver that never fills it) is stamped with its receive time on the node clock,
@@ -29,19 +24,22 @@ Robustness: every rejected message is counted per reason and summarised on ``/di
 nothing is logged per message, nothing non-finite is published (the Estimator never returns a
 non-finite estimate).
 
-Parameters: the keys of ``kvark_ros.core.config_schema`` (validated by
-``kvark_ros.core.config.config_from_parameters``, the one place) plus ``torque_source``. Run-time
-keys may change while the node runs; the others are read-only. Relative paths resolve against the
-package's share directory (then the source tree, then the working directory). The URDF comes from
-``robot_model.urdf``; set it to ``robot_description`` to build from that topic instead (the topic is
-also used if it arrives while no estimator could be built).
+Parameters: the config keys (``kvark_ros.ros.parameters``) plus ``torque_source``; relative paths
+resolve against the package's share directory, then the source tree, then the working directory.
 
-Callbacks run in the default, mutually exclusive callback group: single-threaded executor.
+Threads: ``main`` spins a two-thread executor. Inputs, outputs and ``/diagnostics`` share one
+mutually exclusive callback group, the services another, so ``~/reload_model`` builds the new
+estimator beside the 500 Hz path and swaps it in between two samples (under a lock), continuing the
+old filter's state when joints and observer match: reloading the same model changes no output.
+Lost input is measured: gaps in the joint-state stamps against the measured rate are counted and
+shown on ``/diagnostics`` (WARN above ``diagnostics.max_loss``). The uncertainty topics are published
+only while someone subscribes (checked at every ``/diagnostics`` tick and every 100 estimates).
 """
 from __future__ import annotations
 
 import array
 import sys
+import threading
 from collections import Counter
 from typing import Any
 
@@ -49,8 +47,9 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import WrenchStamped
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
@@ -66,6 +65,7 @@ from kvark_ros.ros.diagnostics import NOT_READY, SERVICE_RESET, StatusBuilder, W
 
 URDF_FROM_TOPIC = "robot_description"
 WRENCH_AXES = ("force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z")
+SUBSCRIBER_CHECK = 100          # estimates between checks whether anyone subscribes to the uncertainty topics
 _BUILD_ERRORS = (ValueError, OSError, RuntimeError, KeyError, TypeError, np.linalg.LinAlgError)
 
 
@@ -85,14 +85,6 @@ def _describe(exc: BaseException) -> str:
     return str(exc) or type(exc).__name__
 
 
-def _root_link(estimator: Estimator) -> str:
-    """Name of the URDF root link (the frame whose axes ``wrench.frame: base`` uses)."""
-    for frame in estimator.robot.model.frames:
-        if frame.parentJoint == 0 and str(frame.type) == "BODY":
-            return frame.name
-    return "base"
-
-
 class EstimatorNode(Node):
     """The ``kvark_estimator`` node (module docstring). ``kwargs`` go to ``rclpy.node.Node``."""
 
@@ -106,7 +98,8 @@ class EstimatorNode(Node):
         self._columns = JointColumns(config.joint_names)
         self._counts: Counter[str] = Counter()      # the node's and the pairing's reasons
         self._pairer = StreamPairer(config.input.command_max_age, config.input.max_gap, counts=self._counts)
-        self._arrivals = 0                           # order key of the next message
+        self._stamped_commands = self._torque_source == "effort_commands_joint_state"
+        self._lock = threading.Lock()                # the input path and the swap of a reloaded estimator
         self._estimator: Estimator | None = None
         self._urdf_xml: str | None = None            # newest robot_description received
         self._urdf_in_use = ""
@@ -119,15 +112,15 @@ class EstimatorNode(Node):
         self._received = self._published = 0
         self._last_covariance: np.ndarray | None = None
         self._diag_time = self.get_clock().now().nanoseconds / 1e9
-        self._diag_received = self._diag_published = 0
+        self._diag_received = self._diag_published = self._diag_lost = 0
         self._diag_counts: Counter[str] = Counter()
-        self._statuses = StatusBuilder(self.get_name(), config.robot)
+        self._statuses = StatusBuilder(self.get_fully_qualified_name(), config.robot)
+        self._uncertainty_wanted = False
         label = ",".join(self._names)
-        self._stddev_layout = MultiArrayLayout(
-            dim=[MultiArrayDimension(label=label, size=self._n, stride=self._n)], data_offset=0)
-        self._covariance_layout = MultiArrayLayout(
-            dim=[MultiArrayDimension(label="row: " + ",".join(WRENCH_AXES), size=6, stride=36),
-                 MultiArrayDimension(label="column: " + ",".join(WRENCH_AXES), size=6, stride=6)], data_offset=0)
+        self._stddev_layout = MultiArrayLayout(dim=[MultiArrayDimension(label=label, size=self._n, stride=self._n)])
+        self._covariance_layout = MultiArrayLayout(dim=[
+            MultiArrayDimension(label="row: " + ",".join(WRENCH_AXES), size=6, stride=36),
+            MultiArrayDimension(label="column: " + ",".join(WRENCH_AXES), size=6, stride=6)])
 
         sensor_qos = QoSProfile(history=qos_profile_sensor_data.history, depth=config.input.queue_depth,
                                 reliability=qos_profile_sensor_data.reliability,
@@ -139,16 +132,22 @@ class EstimatorNode(Node):
         self._pub_covariance = self.create_publisher(Float64MultiArray, "~/external_wrench_covariance", output_qos)
         self._pub_contact = self.create_publisher(Bool, "~/contact", output_qos)
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
-        self.create_subscription(JointState, "joint_states", self._on_joint_state, sensor_qos)
+        self._inputs = MutuallyExclusiveCallbackGroup()
+        services = MutuallyExclusiveCallbackGroup()
+        self.create_subscription(JointState, "joint_states", self._on_joint_state, sensor_qos,
+                                 callback_group=self._inputs)
         if self._torque_source == "effort_commands":
-            self.create_subscription(Float64MultiArray, "effort_commands", self._on_command_array, sensor_qos)
-        elif self._torque_source == "effort_commands_joint_state":
-            self.create_subscription(JointState, "effort_commands", self._on_command_state, sensor_qos)
+            self.create_subscription(Float64MultiArray, "effort_commands", self._on_command_array, sensor_qos,
+                                     callback_group=self._inputs)
+        elif self._stamped_commands:
+            self.create_subscription(JointState, "effort_commands", self._on_command_state, sensor_qos,
+                                     callback_group=self._inputs)
         self.create_subscription(String, "robot_description", self._on_robot_description,
-                                 QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        self.create_service(Trigger, "~/reset", self._on_reset)
-        self.create_service(Trigger, "~/reload_model", self._on_reload_model)
-        self._timer = self.create_timer(config.diagnostics.period, self._publish_diagnostics)
+                                 QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL), callback_group=services)
+        self.create_service(Trigger, "~/reset", self._on_reset, callback_group=services)
+        self.create_service(Trigger, "~/reload_model", self._on_reload_model, callback_group=services)
+        self._timer = self.create_timer(config.diagnostics.period, self._publish_diagnostics,
+                                        callback_group=self._inputs)
         self.add_on_set_parameters_callback(lambda changed: parameters.check_update(self, changed))
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -160,6 +159,7 @@ class EstimatorNode(Node):
             if problem is not None:
                 self._model_problem = problem
                 self.get_logger().error(f"no estimator: {problem} (fix it, then call ~/reload_model)")
+        self._check_subscribers()
         self.get_logger().info(
             f"observer {config.observer}, {self._n} joints, model {config.model_dir}, "
             f"torque from {self._torque_source}; outputs under {self.get_fully_qualified_name()}/")
@@ -172,32 +172,41 @@ class EstimatorNode(Node):
         if not names:
             return
         config = parameters.read_config(self)             # read-only keys cannot differ: the on-set callback refused them
-        previous, self._config = self._config, config
-        if self._estimator is not None:
-            self._estimator.configure(config)
-        self._pairer.command_max_age, self._pairer.max_gap = config.input.command_max_age, config.input.max_gap
+        with self._lock:
+            previous, self._config = self._config, config
+            if self._estimator is not None:
+                self._estimator.configure(config)
+            self._pairer.command_max_age, self._pairer.max_gap = config.input.command_max_age, config.input.max_gap
         if config.diagnostics.period != previous.diagnostics.period:
             self.destroy_timer(self._timer)
-            self._timer = self.create_timer(config.diagnostics.period, self._publish_diagnostics)
+            self._timer = self.create_timer(config.diagnostics.period, self._publish_diagnostics,
+                                            callback_group=self._inputs)
         self.get_logger().info("parameters changed: " + ", ".join(
             f"{n}={self.get_parameter(n).value}" for n in names))
 
     # ------------------------------------------------------------------ the estimator
 
     def _load(self, urdf_xml: str | None) -> str | None:
-        """Build and install a new estimator; the problem as text if that failed (the old one stays)."""
+        """Build a new estimator (outside the lock: the inputs keep flowing) and swap it in between two
+        samples, continuing the old one's filter state where joints and observer match; the problem as
+        text if the build failed (the old one stays)."""
         try:
             estimator = Estimator.from_config(self._config, urdf=urdf_xml)
         except _BUILD_ERRORS as exc:
             return _describe(exc)
-        if self._estimator is not None:
-            self._archived.update(self._estimator.counts)
-        self._estimator = estimator
-        self._urdf_in_use = "robot_description topic" if urdf_xml is not None else self._config.urdf
-        self._base_frame = _root_link(estimator)
-        self._model_problem = ""
-        self._reload_problem = None
-        self._pairer.reset()
+        with self._lock:
+            old = self._estimator
+            if old is not None:
+                self._archived.update(old.counts)
+                try:
+                    estimator.continue_from(old)
+                except ValueError:
+                    self._pairer.reset()              # another observer or other joints: start over
+            self._estimator = estimator
+            self._urdf_in_use = "robot_description topic" if urdf_xml is not None else self._config.urdf
+            self._base_frame = estimator.robot.root_link
+            self._model_problem = ""
+            self._reload_problem = None
         return None
 
     def _urdf_for_reload(self) -> str | None:
@@ -209,11 +218,19 @@ class EstimatorNode(Node):
 
     # ------------------------------------------------------------------ inputs
 
-    def _order_key(self) -> int:
-        self._arrivals += 1
-        return self._arrivals
+    def _order_key(self, info: dict, stamp: float | None) -> float:
+        """When the message was published (s): its header stamp for stamped commands' pairing, else the
+        middleware's source timestamp (or receive time, or now where it gives neither)."""
+        if self._stamped_commands and stamp is not None:
+            return stamp
+        return (info.get("source_timestamp") or info.get("received_timestamp")
+                or self.get_clock().now().nanoseconds) / 1e9
 
-    def _on_joint_state(self, msg: JointState) -> None:
+    def _on_joint_state(self, msg: JointState, info: dict) -> None:
+        with self._lock:
+            self._joint_state(msg, info)
+
+    def _joint_state(self, msg: JointState, info: dict) -> None:
         index = self._columns.index(msg.name)
         if index is None:
             self._counts[Drop.OTHER_JOINTS] += 1
@@ -243,9 +260,14 @@ class EstimatorNode(Node):
             tau_m = np.asarray(effort, dtype=np.float64)[index] if len(effort) == count else None
             self._estimate_all(self._pairer.stamped_state(Sample(stamp, q, qd, tau_m, stamp_msg)))
         else:
-            self._estimate_all(self._pairer.state(self._order_key(), Sample(stamp, q, qd, None, stamp_msg)))
+            key = self._order_key(info, stamp)
+            self._estimate_all(self._pairer.state(key, Sample(stamp, q, qd, None, stamp_msg)))
 
-    def _on_command_array(self, msg: Float64MultiArray) -> None:
+    def _on_command_array(self, msg: Float64MultiArray, info: dict) -> None:
+        with self._lock:
+            self._command_array(msg, info)
+
+    def _command_array(self, msg: Float64MultiArray, info: dict) -> None:
         data, dims = msg.data, msg.layout.dim
         index = None
         if len(dims) == 1 and dims[0].label:
@@ -262,14 +284,16 @@ class EstimatorNode(Node):
         else:
             self._counts[Drop.BAD_COMMAND] += 1
             return
-        self._estimate_all(self._pairer.command(self._order_key(), tau_m))
+        self._estimate_all(self._pairer.command(self._order_key(info, None), tau_m))
 
-    def _on_command_state(self, msg: JointState) -> None:
-        index = self._columns.index(msg.name)
-        if not isinstance(index, np.ndarray) or len(msg.effort) != len(msg.name):
-            self._counts[Drop.BAD_COMMAND] += 1
-            return
-        self._estimate_all(self._pairer.command(self._order_key(), np.asarray(msg.effort, dtype=np.float64)[index]))
+    def _on_command_state(self, msg: JointState, info: dict) -> None:
+        with self._lock:
+            index = self._columns.index(msg.name)
+            if not isinstance(index, np.ndarray) or len(msg.effort) != len(msg.name):
+                self._counts[Drop.BAD_COMMAND] += 1
+                return
+            key = self._order_key(info, stamp_seconds(msg.header.stamp.sec, msg.header.stamp.nanosec))
+            self._estimate_all(self._pairer.command(key, np.asarray(msg.effort, dtype=np.float64)[index]))
 
     def _on_robot_description(self, msg: String) -> None:
         xml = msg.data
@@ -312,7 +336,7 @@ class EstimatorNode(Node):
         force, torque = wrench.wrench.force, wrench.wrench.torque
         force.x, force.y, force.z, torque.x, torque.y, torque.z = fx, fy, fz, tx, ty, tz
         self._pub_wrench.publish(wrench)
-        if covariance is not None:
+        if covariance is not None and self._uncertainty_wanted:
             stddev = np.sqrt(np.maximum(np.diag(covariance), 0.0))
             self._pub_stddev.publish(Float64MultiArray(layout=self._stddev_layout, data=_doubles(stddev)))
             self._pub_covariance.publish(Float64MultiArray(layout=self._covariance_layout,
@@ -320,6 +344,12 @@ class EstimatorNode(Node):
         self._pub_contact.publish(Bool(data=estimate.contact))
         self._last_covariance = covariance
         self._published += 1
+        if self._published % SUBSCRIBER_CHECK == 0:
+            self._check_subscribers()
+
+    def _check_subscribers(self) -> None:
+        self._uncertainty_wanted = (self._pub_stddev.get_subscription_count() > 0
+                                    or self._pub_covariance.get_subscription_count() > 0)
 
     # ------------------------------------------------------------------ services
 
@@ -328,9 +358,10 @@ class EstimatorNode(Node):
             response.success = False
             response.message = f"no estimator to reset: {self._model_problem}"
             return response
-        self._estimator.reset()
-        self._pairer.reset()
-        self._counts[Drop.SERVICE_RESET] += 1
+        with self._lock:
+            self._estimator.reset()
+            self._pairer.reset()
+            self._counts[Drop.SERVICE_RESET] += 1
         response.success = True
         response.message = "filter reset; the next joint state starts a new estimate"
         return response
@@ -365,31 +396,27 @@ class EstimatorNode(Node):
         return counts
 
     def _publish_diagnostics(self) -> None:
+        self._check_subscribers()
         now = self.get_clock().now()
         seconds = now.nanoseconds / 1e9
         counts = self._all_counts()
         estimator = self._estimator
         fresh = {key: total - self._diag_counts.get(key, 0) for key, total in counts.items()
                  if total > self._diag_counts.get(key, 0)}
+        lost = self._pairer.lost
         window = Window(seconds - self._diag_time, self._received - self._diag_received,
-                        self._published - self._diag_published, counts, fresh)
+                        self._published - self._diag_published, counts, fresh, lost - self._diag_lost,
+                        self._config.diagnostics.max_loss)
         self._diag_time, self._diag_received, self._diag_published = seconds, self._received, self._published
+        self._diag_lost = lost
         self._diag_counts = counts
-        config = self._config
-        values = {"model_dir": config.model_dir, "observer": config.observer, "urdf": self._urdf_in_use or config.urdf,
-                  "joints": ",".join(self._names), "torque_source": self._torque_source}
-        if estimator is not None:
-            info = estimator.trained.info
-            values.update({"trained_samples": info.get("samples", "?"),
-                           "trained_with": info.get("kvark_ros_version", "?"),
-                           "residual_compensated": estimator.observer.uses_residual_model})
         reporting = estimator is None or estimator.observer.reports_covariance
         message = DiagnosticArray()
         message.header.stamp = now.to_msg()
         message.status = [
-            self._statuses.model(values, None if estimator is not None else self._model_problem,
-                                 self._reload_problem),
-            self._statuses.input(window, {"joint_states_received": self._received,
+            self._statuses.model(self._config, self._urdf_in_use, self._torque_source, estimator,
+                                 self._model_problem, self._reload_problem),
+            self._statuses.input(window, {"joint_states_received": self._received, "joint_states_lost": lost,
                                           "estimates_published": self._published}, self._missing_detail),
             self._statuses.filter(window, estimator.contact if estimator is not None else None,
                                   self._last_covariance,
@@ -406,11 +433,14 @@ def main(args: list[str] | None = None) -> int:
         print(f"[{NODE_NAME}] error: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 1
+    executor = MultiThreadedExecutor(num_threads=2)      # inputs and services (a reload) side by side
+    executor.add_node(node)
     try:
-        rclpy.spin(node)
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
     return 0

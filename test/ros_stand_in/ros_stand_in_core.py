@@ -221,13 +221,27 @@ class Graph:
         self.publishers: dict[str, list[Any]] = {}
         self.services: dict[str, Any] = {}
         self.timers: list[Any] = []
+        self.sequence = 0
 
-    def deliver(self, topic: str, message: Any) -> None:
+    def deliver(self, topic: str, message: Any, published_ns: int | None = None) -> None:
+        """Hand ``message`` to every subscription of ``topic`` now, as rclpy's executor would.
+
+        ``published_ns``: when the message was published (its message info's ``source_timestamp``);
+        default now. A test that delivers messages late or out of order passes their publication time,
+        as DDS reports it; the stand-in clock is the reception time.
+        """
+        self.sequence += 1
+        info = {"source_timestamp": now_ns() if published_ns is None else int(published_ns),
+                "received_timestamp": now_ns(), "publication_sequence_number": self.sequence,
+                "reception_sequence_number": self.sequence}
         for subscription in list(self.subscriptions.get(topic, ())):
             if not isinstance(message, subscription.msg_type):
                 raise TypeError(f"stand-in: {topic} carries {subscription.msg_type.__name__}, "
                                 f"got {type(message).__name__}")
-            subscription.callback(message)
+            if subscription.with_message_info:
+                subscription.callback(message, dict(info))
+            else:
+                subscription.callback(message)
 
     def published(self, topic: str) -> list[Any]:
         """Every message published on ``topic`` (resolved name) so far, in order."""

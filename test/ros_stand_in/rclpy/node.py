@@ -9,6 +9,8 @@ Topics, services and timers live in ``ros_stand_in_core.GRAPH``.
 """
 from __future__ import annotations
 
+import inspect
+
 import math
 from typing import Any, Callable
 
@@ -31,6 +33,10 @@ class Publisher:
         self.messages: list[Any] = []
         self.destroyed = False
 
+    def get_subscription_count(self) -> int:
+        """Subscriptions on this publisher's topic in the stand-in graph."""
+        return len(_core.GRAPH.subscriptions.get(self.topic_name, ()))
+
     def publish(self, msg: Any) -> None:
         if self.destroyed:
             raise RuntimeError(f"stand-in: publisher of {self.topic_name} was destroyed")
@@ -41,8 +47,19 @@ class Publisher:
 
 
 class Subscription:
-    def __init__(self, msg_type: type, topic: str, callback: Callable[[Any], None], qos_profile: Any) -> None:
+    def __init__(self, msg_type: type, topic: str, callback: Callable[..., None], qos_profile: Any) -> None:
         self.msg_type, self.topic_name, self.callback, self.qos_profile = msg_type, topic, callback, qos_profile
+        # As rclpy decides (Subscription.callback setter): one argument, or the message and its info.
+        try:
+            inspect.signature(callback).bind(object())
+            self.with_message_info = False
+        except TypeError:
+            try:
+                inspect.signature(callback).bind(object(), object())
+            except TypeError:
+                raise RuntimeError("Subscription.__init__(): callback should be either be callable with one "
+                                   "argument(to get only the message) or two (to get message and message info)")
+            self.with_message_info = True
 
 
 class Service:

@@ -121,3 +121,15 @@ def test_failed_save_keeps_the_previous_model(tmp_path, panda_trained, monkeypat
         save_model(target, replace(panda_trained, robot="other"))
     assert (target / "model.yaml").read_text() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model"]
+
+
+def test_an_overflowing_input_is_rejected_without_a_warning(panda_config, panda_trained):
+    """|x| ~ 1e200 overflows the finiteness check's sum of squares: a counted rejection, nothing on stderr."""
+    import warnings
+    estimator = Estimator.from_config(panda_config, panda_trained)
+    q = np.zeros(7)
+    estimator.step(0.0, q, q, q)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert estimator.step(0.002, np.full(7, 1e200), q, q) is None
+    assert estimator.status == Status.NON_FINITE

@@ -266,16 +266,17 @@ def test_reloading_the_same_model_mid_run_changes_no_output(ros, make_node, cont
 
 
 def test_lost_joint_states_are_counted_and_warned_about(ros, make_node, contact_bag):
-    """25 of the first 1000 samples never arrive (dropped before any callback): 2.5 % > diagnostics.max_loss."""
+    """25 of the first 1000 samples never arrive (dropped before any callback), 17 of them in the second
+    second: 3.4 % of that window's input > diagnostics.max_loss (1 %)."""
     messages = bag_messages(ros, contact_bag)[:2000]
-    dropped = {300 + 37 * i for i in range(25)}                # sample indices, each a state and its command
+    dropped = {300 + 25 * i for i in range(25)}                # sample indices, each a state and its command
     kept = [m for i, m in enumerate(messages) if i // 2 not in dropped]
     node = make_node()
     feed(ros, kept)
     assert node._pairer.lost == 25
-    ros.core.set_time(nanoseconds=kept[-1][0] + 1)
+    ros.core.set_time(2.5)                  # the 2 s /diagnostics covers 1-2 s: samples 500-999, 17 of them lost
     status = diagnostics(ros)["input"]
-    assert status.level == ros.diag.DiagnosticStatus.WARN and "25 joint states lost" in status.message
+    assert status.level == ros.diag.DiagnosticStatus.WARN and "17 joint states lost" in status.message
     assert values_of(status)["joint_states_lost"] == "25"
 
 
@@ -644,8 +645,9 @@ def callback_cost(ros, make_node, messages) -> dict[str, float]:
     for log_ns, topic, msg in messages:
         ros.core.set_time(nanoseconds=log_ns)
         callback = subscriptions[topic]
+        info = {"source_timestamp": log_ns, "received_timestamp": log_ns}
         start = clock()
-        callback(msg)
+        callback(msg, info)
         cost[topic].append((clock() - start) / 1e3)
     js, cmd = np.array(cost["/joint_states"][2:]), np.array(cost["/effort_commands"][2:])
     both = js + cmd

@@ -152,8 +152,11 @@ class Estimator:
         if q.shape != (n,) or qd.shape != (n,) or tau_m.shape != (n,):
             self._reject(Status.BAD_SHAPE)
             return None
-        # One reduction instead of three isfinite passes: NaN or Inf anywhere makes the sum non-finite.
-        if not np.isfinite(stamp + q @ q + qd @ qd + tau_m @ tau_m):
+        # One reduction instead of three isfinite passes: NaN or Inf anywhere makes the sum non-finite, and
+        # so does |x| > ~1e154 (overflow); that is a rejection, not a warning on stderr.
+        with np.errstate(over="ignore", invalid="ignore"):
+            finite = np.isfinite(stamp + q @ q + qd @ qd + tau_m @ tau_m)
+        if not finite:
             self._reject(Status.NON_FINITE)
             return None
         previous = self._stamp

@@ -81,10 +81,6 @@ def _doubles(values: np.ndarray) -> array.array:
     return array.array("d", np.ascontiguousarray(values, dtype=np.float64).tobytes())
 
 
-def _describe(exc: BaseException) -> str:
-    return str(exc) or type(exc).__name__
-
-
 class EstimatorNode(Node):
     """The ``kvark_estimator`` node (module docstring). ``kwargs`` go to ``rclpy.node.Node``."""
 
@@ -193,7 +189,7 @@ class EstimatorNode(Node):
         try:
             estimator = Estimator.from_config(self._config, urdf=urdf_xml)
         except _BUILD_ERRORS as exc:
-            return _describe(exc)
+            return (str(exc) or type(exc).__name__)
         with self._lock:
             old = self._estimator
             if old is not None:
@@ -219,12 +215,13 @@ class EstimatorNode(Node):
     # ------------------------------------------------------------------ inputs
 
     def _order_key(self, info: dict, stamp: float | None) -> float:
-        """When the message was published (s): its header stamp for stamped commands' pairing, else the
-        middleware's source timestamp (or receive time, or now where it gives neither)."""
+        """When the message was published (s): with stamped commands the header stamp (an unstamped one is
+        at the newest state's), else the middleware's source timestamp (or receive time, or now)."""
         if self._stamped_commands and stamp is not None:
-            return stamp
-        return (info.get("source_timestamp") or info.get("received_timestamp")
-                or self.get_clock().now().nanoseconds) / 1e9
+            return stamp if stamp > 0.0 or self._pairer.last_stamp is None else self._pairer.last_stamp
+        published = next((info[k] for k in ("source_timestamp", "received_timestamp") if info.get(k) is not None),
+                         None)
+        return (self.get_clock().now().nanoseconds if published is None else published) / 1e9
 
     def _on_joint_state(self, msg: JointState, info: dict) -> None:
         with self._lock:
@@ -370,7 +367,7 @@ class EstimatorNode(Node):
         try:
             problem = self._load(self._urdf_for_reload())
         except ValueError as exc:
-            problem = _describe(exc)
+            problem = (str(exc) or type(exc).__name__)
         if problem is None:
             response.success = True
             response.message = f"model reloaded from {self._config.model_dir} (observer {self._config.observer})"

@@ -155,7 +155,7 @@ KEYS: tuple[Key, ...] = (
          **_unit(0.0, 10.0, low_open=True)),
     _key("input.command_max_age", "number", 0.01, "s; oldest command a joint state may be paired with", runtime=True,
          **_unit(0.0, 1.0, low_open=True)),
-    _key("input.queue_depth", "integer", 10, "subscription queue depth of the node (sensor-data QoS)", **_unit(1, 1000)),
+    _key("input.queue_depth", "integer", 50, "subscription queue depth of the node (sensor-data QoS)", **_unit(1, 1000)),
     _key("contact.confidence", "number", 0.99, "confidence of the variance-aware χ² contact test", runtime=True,
          **_unit(0.5, 1.0, low_open=True, high_open=True)),
     _key("contact.debounce", "number", 0.02, "s the contact test must hold before the flag changes",

@@ -158,10 +158,25 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--augment", action="store_true",
                         help=f"also diagnose the training bags, train on the augmented model and replay "
                              f"{', '.join(AUGMENTED_OBSERVERS)} with it (report section 'Model augmentation')")
+    real = parser.add_argument_group(
+        "real recording", "--real BAG: train on the first part of a contact-free recording of a real robot and "
+                          "report every observer's false τ_ext, coverage of zero and false contacts on the rest, "
+                          "on the nominal and on the diagnosed (augmented) model; no simulation")
+    real.add_argument("--real", metavar="BAG", help="the contact-free recording (joint states with efforts, "
+                                                  "optionally commands)")
+    real.add_argument("--config", help="estimator config (default: config/<robot>.yaml)")
+    real.add_argument("--train-share", type=float, default=0.7, help="first share of the time to train on "
+                                                                      "(default 0.7)")
+    real.add_argument("--rate", type=float, default=500.0,
+                      help="keep every k-th sample for about this rate, Hz (default 500; 0: as recorded)")
+    real.add_argument("--no-baselines", action="store_true", help="skip the learned baselines (faster)")
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.real:
+        from kvark_ros.tools.real_benchmark import run_real
+        return run_real(args)
     started = time.perf_counter()
     plan = QUICK if args.quick else FULL
     out = Path(args.out)

@@ -34,12 +34,14 @@ import numpy as np
 import yaml
 from scipy.optimize import lsq_linear
 
-from kvark_ros.core.config import load_config
+from kvark_ros.core.augmentation import load_augmentation
+from kvark_ros.core.config import EstimatorConfig, load_config
 from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.linalg import single_threaded_blas
+from kvark_ros.core.model_store import TrainedModel, save_model
 from kvark_ros.core.robot_model import RobotModel
-from kvark_ros.core.training import SAVGOL_WINDOW, smoothed_signals
+from kvark_ros.core.training import SAVGOL_WINDOW, smoothed_signals, train_model
 from kvark_ros.gap.effects import (
     EFFECT_NAMES,
     MAX_GAIN_ERROR,
@@ -408,6 +410,25 @@ def augmentation(diag: Diagnosis, robot: RobotModel, robot_name: str = "") -> di
             "convention": "tau_m - tau_EL = sum over effects of design(q, qd, qdd, tau_m) @ theta "
                           "(kvark_ros.gap.effects.augmentation_gap)",
             "effects": entries}
+
+
+def train_on_diagnosis(config: EstimatorConfig, robot: RobotModel, segments: Sequence[EstimatorInputs], out: Path,
+                       baselines: bool, seed: int = 0,
+                       log: Callable[[str], None] = print) -> tuple[TrainedModel, dict]:
+    """Diagnose ``segments`` on ``robot`` (the nominal model), write the outputs to ``out/diagnosis``, train on
+    the model augmented with what was named and save it to ``out/model_augmented``.
+
+    Returns the trained model and a summary: the effects and the mean held-out gap before/after (N·m).
+    """
+    diagnosis = diagnose(robot, segments, log=log)
+    write_outputs(diagnosis, robot, out / "diagnosis", config.robot, log=log)
+    augmentation = load_augmentation(out / "diagnosis" / "augmentation.yaml", config.joint_names)
+    trained = train_model(RobotModel.from_config(config, augmentation), config.robot, segments, baselines=baselines,
+                          seed=seed, log=log)
+    save_model(out / "model_augmented", trained)
+    return trained, {"effects": list(augmentation.effect_names),
+                     "gap_before": diagnosis.result["gap_before"]["joint_rmse_mean"],
+                     "gap_after": diagnosis.result["gap_after"]["joint_rmse_mean"]}
 
 
 def write_outputs(diag: Diagnosis, robot: RobotModel, out: Path, robot_name: str = "", plots: bool = True,

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
-from kvark_ros.core.augmentation import load_augmentation
 from kvark_ros.core.config import EstimatorConfig, default_config_path, load_config, parse_observers
 from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.model_store import save_model
@@ -217,19 +216,12 @@ def augmented_run(config: EstimatorConfig, nominal: RobotModel, segments: list, 
                   out: Path, seed: int, log) -> dict[str, Any]:
     """Diagnose the training recordings on the ``nominal`` model, train on the augmented model, replay
     the test bags with it."""
-    from kvark_ros.gap.diagnose import diagnose, write_outputs
-    diagnosis = diagnose(nominal, segments, log=log)
-    write_outputs(diagnosis, nominal, out / "diagnosis", config.robot, log=log)
-    augmentation = load_augmentation(out / "diagnosis" / "augmentation.yaml", config.joint_names)
-    trained = train_model(RobotModel.from_config(config, augmentation), config.robot, segments, baselines=False,
-                          seed=seed, log=log)
-    save_model(out / "model_augmented", trained)
+    from kvark_ros.gap.diagnose import train_on_diagnosis
+    trained, summary = train_on_diagnosis(config, nominal, segments, out, baselines=False, seed=seed, log=log)
     scenarios = {}
     for scenario, bag in test_bags.items():
         log(f"[benchmark] replaying {scenario} on the augmented model")
         scenarios[scenario] = replay(config, trained, bag, out / "augmented" / scenario, list(AUGMENTED_OBSERVERS),
                                      write_bag=False, log=log)
-    return {"effects": list(augmentation.effect_names),
-            "gap_before": diagnosis.result["gap_before"]["joint_rmse_mean"],
-            "gap_after": diagnosis.result["gap_after"]["joint_rmse_mean"], "scenarios": scenarios}
+    return {**summary, "scenarios": scenarios}
 

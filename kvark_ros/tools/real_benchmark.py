@@ -17,7 +17,6 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from kvark_ros.core.augmentation import load_augmentation
 from kvark_ros.core.config import (
     ConfigError,
     EstimatorConfig,
@@ -123,16 +122,9 @@ def run_real(args: argparse.Namespace) -> int:
         "rate_hz": round(1.0 / float(np.median(np.diff(held.stamp))), 1),
         "samples": {"train": len(train), "held_out": len(held)},
         "nominal": evaluate(config, nominal, held, observers, log)}
-    from kvark_ros.gap.diagnose import diagnose, write_outputs
-    diagnosis = diagnose(robot, [train], log=log)
-    write_outputs(diagnosis, robot, out / "diagnosis", config.robot, log=log)
-    augmentation = load_augmentation(out / "diagnosis" / "augmentation.yaml", config.joint_names)
-    augmented = train_model(RobotModel.from_config(config, augmentation), config.robot, [train],
-                            baselines=not args.no_baselines, log=log)
-    save_model(out / "model_augmented", augmented)
-    results["augmentation"] = {"effects": list(augmentation.effect_names),
-                               "gap_before": diagnosis.result["gap_before"]["joint_rmse_mean"],
-                               "gap_after": diagnosis.result["gap_after"]["joint_rmse_mean"]}
+    from kvark_ros.gap.diagnose import train_on_diagnosis
+    augmented, results["augmentation"] = train_on_diagnosis(config, robot, [train], out,
+                                                            baselines=not args.no_baselines, log=log)
     results["augmented"] = evaluate(config, augmented, held, observers, log)
     write_text_atomically(out / "results.json", json.dumps(results, indent=2))
     write_text_atomically(out / "report.md", report(results))

@@ -138,3 +138,11 @@ def test_a_state_carrying_its_torque_is_not_paired():
     assert pairer.stamped_state(sample) == [sample]
     assert pairer.stamped_state(Sample(0.002, np.zeros(3), np.zeros(3), None)) == []
     assert pairer.counts[Reject.NO_EFFORT] == 1
+
+
+def test_the_problem_describes_the_name_list_just_looked_up_even_when_cached():
+    columns = JointColumns(JOINTS)
+    assert columns.index(["j1", "j2"]) == Reject.MISSING_JOINT            # j3 missing
+    assert columns.index(["j1", "j1", "j2", "j3"]) == Reject.REPEATED_JOINT
+    assert columns.index(["j1", "j2"]) == Reject.MISSING_JOINT            # from the cache
+    assert columns.missing == ["j3"] and "'j3' missing" in columns.problem

@@ -69,20 +69,28 @@ class JointColumns:
 
     def __init__(self, joint_names: Sequence[str]) -> None:
         self.joint_names = tuple(joint_names)
-        self._cache: dict[tuple[str, ...], np.ndarray | str | None] = {}
+        # name list -> (columns | reason | None, missing joints, repeated joint, problem in words)
+        self._cache: dict[tuple[str, ...], tuple[np.ndarray | str | None, list[str], str | None, str]] = {}
+        self.problem = ""                   # the last rejected name list, in words
+        self.missing: list[str] = []        # the configured joints it lacked
+        self.repeated: str | None = None    # the configured joint it named twice
 
     def index(self, names: Sequence[str]) -> np.ndarray | str | None:
         """Column of each configured joint (intp array), ``None`` when the message names none of them,
-        or a :class:`Reject` reason (missing or repeated joint; :attr:`problem` then says which)."""
+        or a :class:`Reject` reason (missing or repeated joint; :attr:`problem`, :attr:`missing` and
+        :attr:`repeated` then describe this name list)."""
         key = tuple(names)
-        found = self._cache.get(key, self)
-        if found is self:
+        found = self._cache.get(key)
+        if found is None:
             if len(self._cache) >= self.CACHE_SIZE:
                 self._cache.clear()
             found = self._cache[key] = self._lookup(key)
-        return found
+        result = found[0]
+        if isinstance(result, str):
+            _, self.missing, self.repeated, self.problem = found
+        return result
 
-    def _lookup(self, names: tuple[str, ...]) -> np.ndarray | str | None:
+    def _lookup(self, names: tuple[str, ...]) -> tuple[np.ndarray | str | None, list[str], str | None, str]:
         position: dict[str, int] = {}
         repeated = None
         for i, name in enumerate(names):
@@ -91,19 +99,14 @@ class JointColumns:
             position.setdefault(name, i)
         missing = [name for name in self.joint_names if name not in position]
         if len(missing) == len(self.joint_names):
-            return None
-        self.missing, self.repeated = missing, repeated
+            return None, [], None, ""
         if missing:
-            self.problem = f"joint {missing[0]!r} missing from a message naming {list(names)}"
-            return Reject.MISSING_JOINT
+            return (Reject.MISSING_JOINT, missing, repeated,
+                    f"joint {missing[0]!r} missing from a message naming {list(names)}")
         if repeated is not None:
-            self.problem = f"joint {repeated!r} named twice in a message naming {list(names)}"
-            return Reject.REPEATED_JOINT
-        return np.array([position[name] for name in self.joint_names], dtype=np.intp)
-
-    problem = ""                    # the last rejected name list, in words
-    missing: list[str] = []         # the configured joints it lacked
-    repeated: str | None = None     # the configured joint it named twice
+            return (Reject.REPEATED_JOINT, missing, repeated,
+                    f"joint {repeated!r} named twice in a message naming {list(names)}")
+        return np.array([position[name] for name in self.joint_names], dtype=np.intp), [], None, ""
 
     @property
     def seen(self) -> list[tuple[str, ...]]:

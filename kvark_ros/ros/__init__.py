@@ -1,6 +1,7 @@
-"""The ROS 2 adapter of kvark_ros: the ``kvark_estimator`` node (``estimator_node``).
+"""The ROS 2 adapter of kvark_ros: the ``kvark_estimator`` node (``estimator_node``), its parameters
+(``parameters``) and its ``/diagnostics`` statuses (``diagnostics``).
 
-Only this package imports rclpy and ROS message types, and only in ``estimator_node``; helpers
-such as ``contact`` are ROS-free so that the suite can test them without ROS. Importing
+Only this package imports rclpy and ROS message types; every rule it applies (pairing, contact
+test, config) lives in ``kvark_ros.core``, ROS-free, so the suite tests it without ROS. Importing
 ``kvark_ros.ros`` itself does not import rclpy.
 """

@@ -154,8 +154,8 @@ def test_cli_train_writes_model_yaml_with_provenance_and_it_round_trips(config, 
     save_model(tmp_path / "copy", loaded)
     again = load_model(tmp_path / "copy", config.joint_names)
     assert yaml.safe_load((tmp_path / "copy" / MODEL_FILE).read_text()) == document
-    qd = np.random.default_rng(0).uniform(-1.5, 1.5, (50, N))
-    for a, b in zip(loaded.residual.predict_batch(qd), again.residual.predict_batch(qd)):
+    qd, q, g = np.random.default_rng(0).uniform(-1.5, 1.5, (3, 50, N))    # pose inputs for joints that take them
+    for a, b in zip(loaded.residual.predict_batch(qd, q, g), again.residual.predict_batch(qd, q, g)):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(ResidualModelError, match="differ"):
         load_model(cli_model, tuple(reversed(config.joint_names)))
@@ -194,7 +194,7 @@ def test_training_that_raises_keeps_the_previous_model(bags, cli_model, tmp_path
     def broken_fit(*args, **kwargs):
         raise RuntimeError("GP fit failed")
 
-    monkeypatch.setattr(baselines, "hyperparameters_from_gp", broken_fit)
+    monkeypatch.setattr(baselines, "fit_kmp", broken_fit)
     target, before = _previous_model(cli_model, tmp_path)
     with pytest.raises(RuntimeError, match="GP fit failed"):
         main(["train", "--config", str(CONFIG), "--bags", str(bags.mcap), "--out", str(target),

@@ -370,7 +370,7 @@ def test_train_interrupted_during_the_fit_exits_130_and_keeps_the_previous_model
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(baselines, "hyperparameters_from_gp", interrupted)
+    monkeypatch.setattr(baselines, "fit_kmp", interrupted)
     _assert_interrupted_training_keeps_the_model(files, tmp_path, capsys)
 
 
@@ -398,7 +398,7 @@ def test_train_interrupted_with_no_previous_model_leaves_nothing(files, tmp_path
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(baselines, "hyperparameters_from_gp", interrupted)
+    monkeypatch.setattr(baselines, "fit_kmp", interrupted)
     target = tmp_path / "models" / "panda"
     code, err = _cli(capsys, _train(files, tmp_path, target))
     assert code == 130 and err.strip() == "kvark: interrupted"

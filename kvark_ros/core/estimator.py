@@ -83,6 +83,8 @@ class Estimator:
         self.observer = observer
         self.trained = trained
         self._contact_residual = None if observer.uses_residual_model or trained is None else trained.residual
+        # Pose inputs of the residual model in use (observer's or contact test's): g(q) costs a pinocchio pass.
+        self._needs = observer.needs | frozenset(getattr(self._contact_residual, "needs", ()))
         self.contact = ContactDetector(robot.n, config.contact.confidence, config.contact.debounce)
         self.counts: Counter[str] = Counter()
         self.status = Status.WARMUP
@@ -176,7 +178,8 @@ class Estimator:
             if not gap_reset:
                 self._reject(Status.WARMUP)
             return None
-        tau_ext, tau_cov = self.observer.step(stamp - previous, qd, p, p_prev, u_prev)
+        g = self.robot.gravity(q) if "g" in self._needs else None
+        tau_ext, tau_cov = self.observer.step(stamp - previous, qd, p, p_prev, u_prev, q, g)
         wrench, wrench_cov = self.robot.wrench_from_torque(q, tau_ext, tau_cov, self.config.wrench.damping,
                                                            self.config.wrench.frame)
         total = tau_ext.sum() + (0.0 if tau_cov is None else tau_cov.sum() + wrench_cov.sum())
@@ -186,14 +189,17 @@ class Estimator:
             return None
         self.status = Status.OK
         self.counts[Status.OK] += 1
-        return Estimate(stamp, tau_ext, tau_cov, wrench, wrench_cov, self._contact_flag(stamp, qd, tau_ext, tau_cov))
+        flag = self._contact_flag(stamp, q, qd, g, tau_ext, tau_cov)
+        return Estimate(stamp, tau_ext, tau_cov, wrench, wrench_cov, flag)
 
-    def _contact_flag(self, stamp: float, qd: np.ndarray, tau_ext: np.ndarray, tau_cov: np.ndarray | None) -> bool:
+    def _contact_flag(self, stamp: float, q: np.ndarray, qd: np.ndarray, g: np.ndarray | None, tau_ext: np.ndarray,
+                      tau_cov: np.ndarray | None) -> bool:
         """The debounced contact flag after this estimate (class docstring); unchanged without a covariance."""
         if self.observer.uses_residual_model:
             mean, variance = self.observer.prediction
         elif self._contact_residual is not None:
-            mean, variance = self._contact_residual.predict(qd)
+            mean, variance = (self._contact_residual.predict(qd, q, g) if self._contact_residual.needs
+                              else self._contact_residual.predict(qd))
         elif tau_cov is None:
             return self.contact.flag
         else:

@@ -4,7 +4,8 @@ Per joint: residual ``τ_r = τ_m − τ_EL`` (paper eq. 27, accelerations by Sa
 differentiation since recordings carry none; with a model augmentation from ``kvark diagnose``,
 τ_EL is the augmented model's torque and the augmentation is stored with the model), GMM → GMR →
 KMP with the length scale and λ₁ from a GP marginal-likelihood fit and λ₂ calibrated on held-out
-samples (paper v2 §V-B), static filter covariances by covariance matching (v2 §V-D), the
+samples (paper v2 §V-B), each joint's inputs (q̇ alone, or with q or the gravity torque g(q),
+docs/method.md §3.7) chosen by the log-likelihood on the end of every recording, static filter covariances by covariance matching (v2 §V-D), the
 baselines' residual models and the momentum observers' noise levels. The robot model is
 evaluated once per sample (``segment_dynamics``) and reused by every step.
 """
@@ -22,16 +23,16 @@ from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.model_store import TrainedModel
 from kvark_ros.core.observers.base import FilterTuning
 from kvark_ros.core.observers.momentum_observers import MomentumNoise
-from kvark_ros.core.residual import (
-    LEARNED_BASELINES,
-    KMPHyperparameters,
-    KMPResidualModel,
-    hyperparameters_from_gp,
-)
+from kvark_ros.core.residual import INPUT_KINDS, LEARNED_BASELINES, KMPResidualModel
+from kvark_ros.core.residual.kmp_inputs import fit_kmp, second_inputs
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.core.tuning import match_covariances, virtual_measurements
 
-N_SUPPORT = 40               # GMR support points per joint
+N_SUPPORT = 40               # GMR support points per joint (q̇ only)
+N_SUPPORT_2D = 80            # when a joint takes a second input: the points cover a curve in a plane
+INPUT_MODES = ("auto",) + INPUT_KINDS     # --residual-inputs: choose per joint, or one kind for all
+SELECTION_HOLDOUT = 0.2      # end of every recording held out to choose the inputs (contiguous, unseen motion)
+MIN_NLL_GAIN = 0.05          # nats per sample a second input must gain over q̇ alone to be kept
 N_COMPONENTS = 20            # GMM components (paper v2: 20)
 HOLDOUT = 0.2                # share of samples held out for λ₂ calibration (paper v2 §V-B)
 COVERAGE_TARGET = 0.95       # λ₂ is set so that 95 % of held-out residuals fall in μ ± 1.96 σ
@@ -45,19 +46,22 @@ class SegmentDynamics:
 
     tau_el: τ_EL (+ τ_aug when augmented) at the smoothed q̈ and τ_m (eq. 27), N·m;
     p: generalized momentum M(q) q̇ (eq. 5), N·m·s; u: its model input Cᵀq̇ − g + τ_m with the
-    recorded τ_m (eq. 7), N·m.
+    recorded τ_m (eq. 7), N·m; g: the gravity torque g(q), N·m.
     """
 
     tau_el: np.ndarray
     p: np.ndarray
     u: np.ndarray
+    g: np.ndarray
 
 
 @dataclass(frozen=True)
 class TrainingData:
-    """Concatenated training samples: q̇ (T, n) rad/s, τ_r (T, n) N·m; segments keep recordings apart,
-    dynamics holds the robot model along each of them."""
+    """Concatenated training samples: q (T, n) rad, q̇ (T, n) rad/s, g(q) (T, n) N·m, τ_r (T, n) N·m;
+    segments keep recordings apart, dynamics holds the robot model along each of them."""
 
+    q: np.ndarray
+    g: np.ndarray
     qd: np.ndarray
     tau_r: np.ndarray
     segments: tuple[EstimatorInputs, ...]
@@ -87,12 +91,14 @@ def segment_dynamics(robot: RobotModel, seg: EstimatorInputs, qdd: np.ndarray,
     tau_el = np.empty(seg.q.shape)
     p = np.empty(seg.q.shape)
     u = np.empty(seg.q.shape)
+    g = np.empty(seg.q.shape)
     for k, (q, qd, a, tau_s, tau) in enumerate(zip(seg.q, seg.qd, qdd, tau_smoothed, seg.tau_m)):
         tau_el[k] = robot.model_torque(q, qd, a, tau_s)
         p[k], u[k] = robot.momentum_terms(q, qd, tau)
-    for array in (tau_el, p, u):
+        g[k] = robot.gravity(q)
+    for array in (tau_el, p, u, g):
         array.setflags(write=False)
-    return SegmentDynamics(tau_el, p, u)
+    return SegmentDynamics(tau_el, p, u, g)
 
 
 def training_data(robot: RobotModel, segments: Sequence[EstimatorInputs]) -> TrainingData:
@@ -104,12 +110,15 @@ def training_data(robot: RobotModel, segments: Sequence[EstimatorInputs]) -> Tra
         qd_all.append(seg.qd)
         tau_r_all.append(tau_m - dyn.tau_el)
         dynamics.append(dyn)
-    return TrainingData(np.concatenate(qd_all), np.concatenate(tau_r_all), tuple(segments), tuple(dynamics))
+    return TrainingData(np.concatenate([seg.q for seg in segments]), np.concatenate([dyn.g for dyn in dynamics]),
+                        np.concatenate(qd_all), np.concatenate(tau_r_all), tuple(segments), tuple(dynamics))
 
 
-def calibrate_lambda2(model: KMPResidualModel, qd: np.ndarray, tau_r: np.ndarray,
+def calibrate_lambda2(model: KMPResidualModel, qd: np.ndarray, tau_r: np.ndarray, q: np.ndarray | None = None,
+                      g: np.ndarray | None = None,
                       target: float = COVERAGE_TARGET) -> tuple[KMPResidualModel, np.ndarray]:
-    """Per joint, the λ₂ whose μ ± 1.96 σ interval covers ``target`` of the held-out residuals.
+    """Per joint, the λ₂ whose μ ± 1.96 σ interval covers ``target`` of the held-out residuals
+    (q̇, τ_r and, for a model that takes them, q and g: (T, n)).
 
     λ₂ leaves the KMP mean alone (eq. 22) and scales the variance (eq. 23). Returns the
     calibrated model and the held-out coverage per joint.
@@ -117,39 +126,79 @@ def calibrate_lambda2(model: KMPResidualModel, qd: np.ndarray, tau_r: np.ndarray
     coverage = np.empty((len(LAMBDA2_GRID), model.n_joints))
     for index, lambda2 in enumerate(LAMBDA2_GRID):
         hyper = replace(model.hyper, lambda2=np.full(model.n_joints, lambda2))
-        mean, var = KMPResidualModel(model.reference, hyper).predict_batch(qd)
+        mean, var = model.with_hyperparameters(hyper).predict_batch(qd, q, g)
         coverage[index] = np.mean(np.abs(tau_r - mean) <= 1.96 * np.sqrt(var), axis=0)
     best = np.argmin(np.abs(coverage - target), axis=0)
     hyper = replace(model.hyper, lambda2=LAMBDA2_GRID[best])
-    return KMPResidualModel(model.reference, hyper, model.metadata), coverage[best, np.arange(model.n_joints)]
+    return model.with_hyperparameters(hyper), coverage[best, np.arange(model.n_joints)]
 
 
-def _tuning(data: TrainingData,
-            predict_batch: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]) -> FilterTuning:
+def _n_support(kinds: Sequence[str]) -> int:
+    return N_SUPPORT if all(kind == "qd" for kind in kinds) else N_SUPPORT_2D
+
+
+def choose_inputs(data: TrainingData, mode: str, seed: int,
+                  log: Callable[[str], None]) -> tuple[tuple[str, ...], dict[str, list[float]]]:
+    """Each joint's residual inputs (``INPUT_KINDS``) and the held-out log-likelihood behind the choice.
+
+    ``mode`` ``auto``: every kind is fitted on all but the last ``SELECTION_HOLDOUT`` of every recording,
+    its λ₂ calibrated and its mean Gaussian log-likelihood per sample taken on that end (contiguous, so it
+    measures motion the model has not seen, not interpolation between neighbouring samples); a joint keeps
+    q̇ alone unless a second input gains ``MIN_NLL_GAIN``. Any other mode is one kind for every joint.
+    """
+    n = data.qd.shape[1]
+    if mode in INPUT_KINDS:
+        return (mode,) * n, {}
+    if mode != "auto":
+        raise ValueError(f"residual inputs must be one of {list(INPUT_MODES)}, got {mode!r}")
+    tail = np.concatenate([np.arange(len(seg.stamp)) >= (1.0 - SELECTION_HOLDOUT) * len(seg.stamp)
+                           for seg in data.segments])
+    scores: dict[str, list[float]] = {}
+    for kind in INPUT_KINDS:
+        kinds = (kind,) * n
+        z = second_inputs(kinds, data.q, data.g)
+        model = fit_kmp(data.qd[~tail], z[~tail], data.tau_r[~tail], kinds, N_COMPONENTS, _n_support(kinds), seed)
+        model, _ = calibrate_lambda2(model, data.qd[tail], data.tau_r[tail], data.q[tail], data.g[tail])
+        mean, var = model.predict_batch(data.qd[tail], data.q[tail], data.g[tail])
+        loglik = np.mean(-0.5 * np.log(2.0 * np.pi * var) - 0.5 * (data.tau_r[tail] - mean) ** 2 / var, axis=0)
+        scores[kind] = loglik.tolist()
+    table = np.array([scores[kind] for kind in INPUT_KINDS])
+    best = np.argmax(table, axis=0)
+    chosen = tuple(INPUT_KINDS[b] if table[b, j] >= table[0, j] + MIN_NLL_GAIN else "qd" for j, b in enumerate(best))
+    log(f"[train] residual inputs by held-out log-likelihood (nats/sample, last {SELECTION_HOLDOUT:.0%} of each "
+        f"recording): " + "; ".join(f"{kind} {np.round(scores[kind], 2).tolist()}" for kind in INPUT_KINDS)
+        + f" → {list(chosen)}")
+    return chosen, scores
+
+
+def _tuning(data: TrainingData, mean_of: Callable[[EstimatorInputs, SegmentDynamics], np.ndarray]) -> FilterTuning:
     """Covariance matching on the virtual measurements corrected by one residual model's mean."""
-    ys = [virtual_measurements(dyn.p, dyn.u, seg.stamp, predict_batch(seg.qd)[0])
+    ys = [virtual_measurements(dyn.p, dyn.u, seg.stamp, mean_of(seg, dyn))
           for seg, dyn in zip(data.segments, data.dynamics)]
     dt = float(np.median(np.concatenate([np.diff(seg.stamp) for seg in data.segments])))
     return match_covariances(ys, dt)
 
 
 def train_model(robot: RobotModel, robot_name: str, segments: Sequence[EstimatorInputs], *,
-                baselines: bool = True, seed: int = 0, info: dict | None = None,
+                baselines: bool = True, seed: int = 0, info: dict | None = None, residual_inputs: str = "auto",
                 log: Callable[[str], None] = print) -> TrainedModel:
-    """Everything the observers need, from contact-free recordings of ``robot``."""
+    """Everything the observers need, from contact-free recordings of ``robot``; ``residual_inputs`` is one
+    of ``INPUT_MODES`` (``choose_inputs``)."""
     started = time.perf_counter()
     data = training_data(robot, segments)
+    kinds, selection = choose_inputs(data, residual_inputs, seed, log)
     rng = np.random.default_rng(seed)
     held_out = rng.random(len(data.qd)) < HOLDOUT
     qd_fit, tau_fit = data.qd[~held_out], data.tau_r[~held_out]
+    q_held, g_held = data.q[held_out], data.g[held_out]
     log(f"[train] {len(data.qd)} samples from {len(segments)} recording(s); {held_out.sum()} held out")
-    hyper: KMPHyperparameters = hyperparameters_from_gp(qd_fit, tau_fit, N_SUPPORT, seed)
-    log(f"[train] GP fit: length scale {np.round(hyper.length_scale, 3).tolist()} rad/s, "
-        f"λ1 {np.round(hyper.lambda1, 4).tolist()}")
-    kmp = KMPResidualModel.fit(qd_fit, tau_fit, hyper, n_components=N_COMPONENTS, n_support=N_SUPPORT, seed=seed)
-    kmp, coverage = calibrate_lambda2(kmp, data.qd[held_out], data.tau_r[held_out])
+    z = second_inputs(kinds, data.q, data.g)
+    kmp = fit_kmp(qd_fit, z[~held_out], tau_fit, kinds, N_COMPONENTS, _n_support(kinds), seed)
+    log(f"[train] GP fit: length scale {np.round(kmp.hyper.length_scale, 3).tolist()} rad/s, "
+        f"λ1 {np.round(kmp.hyper.lambda1, 4).tolist()}")
+    kmp, coverage = calibrate_lambda2(kmp, data.qd[held_out], data.tau_r[held_out], q_held, g_held)
     log(f"[train] KMP λ2 {kmp.hyper.lambda2.tolist()}; held-out 95% coverage {np.round(coverage, 3).tolist()}")
-    tuning = _tuning(data, kmp.predict_batch)
+    tuning = _tuning(data, lambda seg, dyn: kmp.predict_batch(seg.qd, seg.q, dyn.g)[0])
     log("[train] K-VARK filter tuned by covariance matching")
     qd_held, tau_held = data.qd[held_out], data.tau_r[held_out]
     residuals: dict = {}
@@ -159,14 +208,15 @@ def train_model(robot: RobotModel, robot_name: str, segments: Sequence[Estimator
         options = {"gmr_gp": {"n_components": N_COMPONENTS, "n_support": N_SUPPORT, "reference": kmp.reference}}
         for name, model_class in LEARNED_BASELINES.items():
             residuals[name] = model_class.fit(qd_fit, tau_fit, seed=seed, **options.get(name, {}))
-            tunings[name] = _tuning(data, residuals[name].predict_batch)
+            tunings[name] = _tuning(data, lambda seg, dyn, model=residuals[name]: model.predict_batch(seg.qd)[0])
             log(f"[train] baseline {name} fitted and tuned")
     longest = int(np.argmax([len(seg.stamp) for seg in data.segments]))
     noise = MomentumNoise.from_training(data.dynamics[longest].p, data.dynamics[longest].u,
                                         data.segments[longest].stamp)
-    held_mean, held_var = kmp.predict_batch(qd_held)
-    held_mse = {name: np.mean((tau_held - model.predict_batch(qd_held)[0]) ** 2, axis=0)
-                for name, model in {"kmp": kmp, **residuals}.items()}
+    held_mean, held_var = kmp.predict_batch(qd_held, q_held, g_held)
+    held_mse = {"kmp": np.mean((tau_held - held_mean) ** 2, axis=0)}
+    held_mse.update({name: np.mean((tau_held - model.predict_batch(qd_held)[0]) ** 2, axis=0)
+                     for name, model in residuals.items()})
     held_rmse = {name: np.sqrt(mse).tolist() for name, mse in held_mse.items()}
     tuning = replace(tuning, residual_variance=held_mse["kmp"])
     tunings = {name: replace(value, residual_variance=held_mse[name]) for name, value in tunings.items()}
@@ -174,7 +224,8 @@ def train_model(robot: RobotModel, robot_name: str, segments: Sequence[Estimator
     info.update({
         "kvark_ros_version": __version__,
         "samples": int(len(data.qd)), "held_out": int(held_out.sum()),
-        "kmp": {"n_support": N_SUPPORT, "n_components": N_COMPONENTS,
+        "kmp": {"n_support": kmp.n_support, "n_components": N_COMPONENTS, "inputs": list(kinds),
+                "input_selection_loglik": selection,
                 "length_scale": kmp.hyper.length_scale.tolist(), "sigma_f2": kmp.hyper.sigma_f2.tolist(),
                 "lambda1": kmp.hyper.lambda1.tolist(), "lambda2": kmp.hyper.lambda2.tolist()},
         "held_out_rmse": held_rmse["kmp"],

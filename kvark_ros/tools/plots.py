@@ -28,7 +28,10 @@ def _grid(n: int) -> tuple[plt.Figure, np.ndarray]:
 
 def plot_training(robot: RobotModel, trained: TrainedModel, segments: Sequence[EstimatorInputs],
                   out: Path) -> list[Path]:
-    """Residual torque against velocity with each model's mean ± 2σ, one panel per joint."""
+    """Residual torque against velocity with each model's mean ± 2σ, one panel per joint.
+
+    A joint whose KMP also takes the pose (q or g(q)) has no single curve over q̇: its KMP mean is drawn at
+    the data's own samples instead."""
     from kvark_ros.core.training import training_data
     data = training_data(robot, segments)
     rng = np.random.default_rng(0)
@@ -40,7 +43,12 @@ def plot_training(robot: RobotModel, trained: TrainedModel, segments: Sequence[E
         grid = np.zeros((200, robot.n))
         grid[:, j] = np.linspace(data.qd[:, j].min(), data.qd[:, j].max(), 200)
         for name, model in models.items():
-            mean, var = model.predict_batch(grid)
+            if name == "KMP" and trained.residual.inputs[j] != "qd":
+                mean = model.predict_batch(data.qd[pick], data.q[pick], data.g[pick])[0]
+                ax.scatter(data.qd[pick, j], mean[:, j], s=2, label=f"KMP ({trained.residual.inputs[j]}) at the data")
+                continue
+            mean, var = (model.predict_batch(grid, np.zeros_like(grid), np.zeros_like(grid)) if name == "KMP"
+                         else model.predict_batch(grid))     # a q̇-only joint's curve does not depend on q, g
             line, = ax.plot(grid[:, j], mean[:, j], label=name)
             if name == "KMP":
                 band = 2.0 * np.sqrt(var[:, j])

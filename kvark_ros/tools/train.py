@@ -16,7 +16,7 @@ from kvark_ros.core.augmentation import load_augmentation
 from kvark_ros.core.config import EstimatorConfig, load_config
 from kvark_ros.core.model_store import save_model
 from kvark_ros.core.robot_model import RobotModel, urdf_sha256
-from kvark_ros.core.training import train_model
+from kvark_ros.core.training import INPUT_MODES, train_model
 from kvark_ros.io.alignment import load_recordings
 
 
@@ -52,6 +52,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "config's model_augmentation; '' for none); copied into the model directory")
     parser.add_argument("--no-baselines", action="store_true",
                         help="skip the GMR-GP, sparse-GP and MLP baselines (faster)")
+    parser.add_argument("--residual-inputs", choices=INPUT_MODES, default="auto",
+                        help="inputs of each joint's KMP residual: auto (default) chooses per joint between q̇ alone "
+                             "(qd, the paper's model), q̇ with the joint position (qd_q) and q̇ with the model's "
+                             "gravity torque (qd_g) by log-likelihood on the last 20 %% of every bag; or one of "
+                             "them for every joint")
     parser.add_argument("--seed", type=int, default=0, help="random seed for the hold-out split and fits")
     parser.add_argument("--no-plots", action="store_true", help="do not write training plots")
     parser.set_defaults(run=run)
@@ -72,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
                 "file": Path(source).name, "effects": list(augmentation.effect_names)},
             "bags": [{"name": Path(bag).name, "sha256": bag_hash(Path(bag))} for bag in args.bags]}
     trained = train_model(robot, config.robot, segments, baselines=not args.no_baselines, seed=args.seed,
-                          info=info, log=lambda line: print(line, flush=True))
+                          info=info, residual_inputs=args.residual_inputs, log=lambda line: print(line, flush=True))
     save_model(args.out, trained)
     print(f"[train] model written to {args.out}", flush=True)
     if not args.no_plots:

@@ -13,7 +13,11 @@ from kvark_ros.core.config_schema import KEYS_BY_NAME
 
 
 class ResidualPredictor(Protocol):
-    """A residual-torque model: per-joint mean (n,) N·m and variance (n,) N²·m² at velocity q̇ (n,)."""
+    """A residual-torque model: per-joint mean (n,) N·m and variance (n,) N²·m² at velocity q̇ (n,).
+
+    A model whose joints also take the pose (the KMP with ``qd_q``/``qd_g`` inputs) has a non-empty
+    ``needs`` ({"q"}, {"g"} or both) and is called ``predict(qd, q, g)``, g the model's gravity torque.
+    """
 
     @property
     def n_joints(self) -> int: ...
@@ -105,6 +109,8 @@ class Observer(Stateful, ABC):
     # The residual model's (mean (n,) N·m, variance (n,) N²·m²) at the last step's q̇, for the contact
     # test: observers with a residual model set it in ``step`` so the model is evaluated once per sample.
     prediction: tuple[np.ndarray, np.ndarray] | None = None
+    # The pose inputs ("q", "g") the residual model needs in ``step``; the Estimator computes g only then.
+    needs: frozenset[str] = frozenset()
 
     def __init__(self, n: int, settings: FilterSettings | None = None) -> None:
         self.n = n
@@ -136,7 +142,7 @@ class Observer(Stateful, ABC):
 
     @abstractmethod
     def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,
-             u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+             u_prev: np.ndarray, q: np.ndarray | None = None, g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """Advance one sample.
 
         Args:
@@ -144,6 +150,8 @@ class Observer(Stateful, ABC):
             qd: joint velocity at this sample (n,), rad/s.
             p, p_prev: generalized momentum now and at the previous sample (n,), N·m·s.
             u_prev: momentum input at the previous sample (n,), N·m.
+            q, g: joint position (n,) rad and the model's gravity torque g(q) (n,) N·m at this sample,
+                for a residual model that takes them (``needs``); otherwise may be None.
         Returns:
             ``(tau_ext, P)``: estimate (n,) N·m and covariance (n, n) N²·m², or ``None`` for
             observers that report no uncertainty. The arrays are not modified afterwards by the

@@ -102,6 +102,7 @@ class KVARKFilter(Observer):
         self.name = name or variant
         self.variant = VARIANTS[variant]
         self.residual = residual
+        self.needs = frozenset(getattr(residual, "needs", ()))
         self.tuning = tuning
         self.initial_covariance = settings.initial_covariance          # P_0 = value · I, N²·m²
         self.vb_paper = settings.vb_variant == "paper"                 # else huang
@@ -131,9 +132,9 @@ class KVARKFilter(Observer):
         return (p - p_prev) / dt - u_prev + mu
 
     def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,
-             u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+             u_prev: np.ndarray, q: np.ndarray | None = None, g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         variant = self.variant
-        mu, var_star = self.residual.predict(qd)                       # eqs. 22-23
+        mu, var_star = self.residual.predict(qd, q, g) if self.needs else self.residual.predict(qd)  # 22-23
         self.prediction = mu, var_star
         y = self._virtual_measurement(dt, mu, p, p_prev, u_prev)
         if variant.heteroscedastic:

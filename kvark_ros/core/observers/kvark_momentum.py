@@ -62,6 +62,7 @@ class KVARKMomentumFilter(KFMomentumObserver):
             raise ValueError("the momentum-state K-VARK needs tuning.residual_variance; retrain the model")
         self.variant = VARIANTS[variant]
         self.residual = residual
+        self.needs = frozenset(getattr(residual, "needs", ()))
         self.tuning = tuning
         self.vb_smoothed = settings.vb_variant == "smoothed"          # else paper (window: self.window)
         self.vb_iterations = settings.vb_iterations                    # M
@@ -93,11 +94,11 @@ class KVARKMomentumFilter(KFMomentumObserver):
             self.onset.reset()
 
     def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,
-             u_prev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+             u_prev: np.ndarray, q: np.ndarray | None = None, g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         variant = self.variant
         if self.p_hat is None:
             self.p_hat = p_prev
-        mu, var_star = self.residual.predict(qd)                        # eqs. 22-23
+        mu, var_star = self.residual.predict(qd, q, g) if self.needs else self.residual.predict(qd)  # 22-23
         self.prediction = mu, var_star
         tau_pred = self.tau                                             # eq. 41
         p_pred = self.p_hat + dt * (u_prev - mu + tau_pred)              # eq. 28 as the momentum model

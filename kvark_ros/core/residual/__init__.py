@@ -26,6 +26,7 @@ from __future__ import annotations
 from kvark_ros.core.residual.files import ResidualModelError
 from kvark_ros.core.residual.gp import GMRGPResidualModel, GPHyperparameters, hyperparameters_from_gp
 from kvark_ros.core.residual.kmp import (
+    INPUT_KINDS,
     GMRReference,
     KMPHyperparameters,
     KMPResidualModel,
@@ -43,6 +44,7 @@ LEARNED_BASELINES: dict[str, type] = {
 }
 
 __all__ = [
+    "INPUT_KINDS",
     "GMRGPResidualModel",
     "GMRReference",
     "GPHyperparameters",

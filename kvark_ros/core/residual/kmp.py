@@ -10,6 +10,12 @@ explain (mostly friction). Following paper v1, §III-D and §IV-B:
 3. kernelised movement primitives (KMP) turn the reference into a predictive mean (eq. 22)
    and a heteroscedastic predictive variance (eq. 23) at any query velocity.
 
+A joint may also take a second input z_j (ours, docs/method.md §3.7): its position q_j
+(``qd_q``) or the model's gravity torque g_j(q) (``qd_g``), because a real robot's gap depends
+on the pose, which q̇ alone cannot express. Its support points are then pairs (s_i, s2_i) and the
+kernel has one length scale per input (ARD); a ``qd`` joint ignores s2 (zero inverse length
+scale). ``kvark_ros.core.residual.kmp_inputs`` fits these joints and chooses each joint's inputs.
+
 All joints are handled at once with arrays of shape (n, N); the per-joint factorisations are
 computed once at construction so that a query (500 Hz, inside the filter loop) costs one kernel
 evaluation and one small batched matrix-vector product.
@@ -40,6 +46,7 @@ from kvark_ros.core.residual.files import (
 )
 
 __all__ = [
+    "INPUT_KINDS",
     "GMRReference",
     "KMPHyperparameters",
     "KMPResidualModel",
@@ -63,8 +70,10 @@ GMM_MAX_ITER = 300
 GMR_VARIANCE_FLOOR_REL = 1e-6
 GMR_VARIANCE_FLOOR_ABS = 1e-12
 
-_REFERENCE_KEYS = ("s", "mu", "sigma2")
-_HYPER_KEYS = ("length_scale", "sigma_f2", "lambda1", "lambda2")
+_REFERENCE_KEYS = ("s", "mu", "sigma2", "s2")
+_HYPER_KEYS = ("length_scale", "sigma_f2", "lambda1", "lambda2", "length_scale2")
+# Inputs of a joint's residual: q̇ alone (the paper), q̇ with q, q̇ with the gravity torque g(q).
+INPUT_KINDS = ("qd", "qd_q", "qd_g")
 
 
 @dataclass(frozen=True)
@@ -79,8 +88,11 @@ class KMPHyperparameters:
     sigma_f2: np.ndarray  # kernel amplitude, N²·m²
     lambda1: np.ndarray  # mean regularisation (eq. 22)
     lambda2: np.ndarray  # variance regularisation (eq. 23)
+    length_scale2: np.ndarray | None = None  # of the second input (rad or N·m); ones when unused
 
     def __post_init__(self) -> None:
+        if self.length_scale2 is None:
+            object.__setattr__(self, "length_scale2", np.ones(np.shape(self.length_scale)))
         freeze_positive_vectors(self, _HYPER_KEYS)
 
     @property
@@ -92,7 +104,7 @@ class KMPHyperparameters:
 @dataclass(frozen=True)
 class GMRReference:
     """GMR reference per joint: support inputs s (n, N) rad/s, means mu (n, N) N·m,
-    variances sigma2 (n, N) N²·m².
+    variances sigma2 (n, N) N²·m², second support inputs s2 (n, N) (zeros for q̇-only joints).
 
     This is the probabilistic reference {s_i, μ_i, Σ_i} of eq. 18; sigma2 must be strictly
     positive so that Σ = diag(sigma2) is positive definite. Arrays are stored as read-only
@@ -102,8 +114,11 @@ class GMRReference:
     s: np.ndarray
     mu: np.ndarray
     sigma2: np.ndarray
+    s2: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        if self.s2 is None:
+            object.__setattr__(self, "s2", np.zeros(np.shape(self.s)))
         for key in _REFERENCE_KEYS:
             object.__setattr__(self, key, frozen_float_array(key, getattr(self, key), ndim=2))
         shapes = {getattr(self, key).shape for key in _REFERENCE_KEYS}
@@ -202,8 +217,9 @@ class KMPResidualModel:
     one kernel evaluation and two small products per joint (it runs at 500 Hz in a filter loop).
 
     Kernel (eq. 21): k(s, s') = sigma_f2 · exp(−(s − s')² / (2 length_scale²)); the paper's
-    `l` plays the role of length_scale². With K_j the Gram matrix of joint j (eq. 19) and
-    Σ_j = diag(sigma2_j) (eq. 18):
+    `l` plays the role of length_scale². A joint with a second input z (``inputs`` ``qd_q`` or
+    ``qd_g``) multiplies it by exp(−(z − s2)² / (2 length_scale2²)) (docs/method.md §3.7). With K_j
+    the Gram matrix of joint j (eq. 19) and Σ_j = diag(sigma2_j) (eq. 18):
         mean     μ_*  = k_*ᵀ (K + λ1 Σ)⁻¹ μ                              (eq. 22)
         variance Σ_*  = (N/λ2) (k_** − k_*ᵀ (K + λ2 Σ)⁻¹ k_*), k_** = sigma_f2  (eq. 23)
     Far from the support points the mean tends to 0 and the variance to N·sigma_f2/λ2. Near
@@ -211,23 +227,35 @@ class KMPResidualModel:
     N/λ2 scales it, so the filter's covariance matching, not this model, fixes its absolute
     level.
 
-    Attributes: reference (GMRReference), hyper (KMPHyperparameters), metadata (dict, written
-    to and read from kmp.yaml).
+    Attributes: reference (GMRReference), hyper (KMPHyperparameters), inputs (one of
+    ``INPUT_KINDS`` per joint), needs (the extra inputs ``predict`` must be given: a subset of
+    {"q", "g"}), metadata (dict, written to and read from kmp.yaml).
     """
 
     def __init__(self, reference: GMRReference, hyper: KMPHyperparameters,
-                 metadata: Mapping[str, Any] | None = None) -> None:
+                 metadata: Mapping[str, Any] | None = None, inputs: tuple[str, ...] | None = None) -> None:
         if reference.s.shape[0] != hyper.n_joints:
             raise ResidualModelError(
                 f"reference has {reference.s.shape[0]} joints, hyperparameters have "
                 f"{hyper.n_joints}")
+        n, n_sup = reference.s.shape
+        inputs = tuple(inputs) if inputs is not None else ("qd",) * n
+        if len(inputs) != n or not set(inputs) <= set(INPUT_KINDS):
+            raise ResidualModelError(f"inputs must name one of {list(INPUT_KINDS)} per joint ({n}), got {list(inputs)}")
         self.reference = reference
         self.hyper = hyper
+        self.inputs = inputs
+        self.needs = frozenset(kind[3:] for kind in inputs if kind != "qd")
         self.metadata: dict[str, Any] = dict(metadata or {})
-        n, n_sup = reference.s.shape
         self._s = reference.s
-        # Exponent factor of eq. 21, (n, 1); the paper's `l` plays the role of length_scale².
+        self._s2 = reference.s2
+        # Exponent factors of eq. 21, (n, 1); the paper's `l` plays the role of length_scale².
         self._neg_half_inv_ls2 = (-0.5 / hyper.length_scale ** 2)[:, None]
+        uses_z = np.array([kind != "qd" for kind in inputs])
+        self._neg_half_inv_ls2_z = np.where(uses_z, -0.5 / hyper.length_scale2 ** 2, 0.0)[:, None]
+        self._takes_q = np.array([kind == "qd_q" for kind in inputs], dtype=float)
+        self._takes_g = np.array([kind == "qd_g" for kind in inputs], dtype=float)
+        self._z = np.zeros(n)
         self._sigma_f2 = hyper.sigma_f2
         self._var_scale = n_sup / hyper.lambda2  # N / λ2 of eq. 23, (n,)
         # Rows 0 of _weights: sigma_f2 · (K + λ1 Σ)⁻¹ μ; rows 1..N: sigma_f2 · L⁻¹ with
@@ -237,7 +265,8 @@ class KMPResidualModel:
         self._weights = np.empty((n, n_sup + 1, n_sup))
         eye = np.eye(n_sup)
         for j in range(n):
-            gram = self._kernel(j, reference.s[j][:, None], reference.s[j][None, :])  # eq. 19
+            gram = hyper.sigma_f2[j] * self._unit_kernel(j, reference.s[j][:, None], reference.s2[j][:, None],
+                                                         reference.s[j][None, :], reference.s2[j][None, :])  # eq. 19
             try:
                 mean_factor = scipy.linalg.cho_factor(
                     gram + hyper.lambda1[j] * np.diag(reference.sigma2[j]))
@@ -253,9 +282,9 @@ class KMPResidualModel:
             self._weights[j, 1:] = hyper.sigma_f2[j] * chol_inv
         self._weights.setflags(write=False)
 
-    def _kernel(self, j: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """Squared-exponential kernel of joint j between broadcastable inputs (eq. 21)."""
-        return self.hyper.sigma_f2[j] * np.exp(self._neg_half_inv_ls2[j, 0] * (a - b) ** 2)
+    def _unit_kernel(self, j: int, a: np.ndarray, a2: np.ndarray, b: np.ndarray, b2: np.ndarray) -> np.ndarray:
+        """k/sigma_f2 of joint j between broadcastable inputs (q̇ a, b; second inputs a2, b2), eq. 21."""
+        return np.exp(self._neg_half_inv_ls2[j, 0] * (a - b) ** 2 + self._neg_half_inv_ls2_z[j, 0] * (a2 - b2) ** 2)
 
     @property
     def n_joints(self) -> int:
@@ -267,9 +296,26 @@ class KMPResidualModel:
         """Number of GMR support points N per joint."""
         return self._s.shape[1]
 
-    def predict(self, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def second_input(self, q: np.ndarray | None, g: np.ndarray | None) -> np.ndarray:
+        """z (…, n): q_j for ``qd_q`` joints, g_j for ``qd_g`` joints, 0 otherwise; ValueError if one is needed and
+        missing."""
+        if not self.needs:
+            return self._z
+        if ("q" in self.needs and q is None) or ("g" in self.needs and g is None):
+            raise ValueError(f"this residual model's inputs {list(self.inputs)} need "
+                             f"{' and '.join(sorted(self.needs))} besides q̇")
+        z = 0.0
+        if "q" in self.needs:
+            z = z + self._takes_q * q
+        if "g" in self.needs:
+            z = z + self._takes_g * g
+        return z
+
+    def predict(self, qd: np.ndarray, q: np.ndarray | None = None,
+                g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """qd: (n,) one sample -> (mean (n,) N·m, variance (n,) N²·m²).
 
+        q (n,) rad and g (n,) N·m (the model's gravity torque) are needed when ``needs`` names them.
         Hot path: no Python loop over joints, no allocation beyond a few small temporaries.
 
         qd in rad/s, assumed finite (the caller validates). The variance is floored twice:
@@ -285,6 +331,11 @@ class KMPResidualModel:
         e = qd[:, None] - self._s
         np.square(e, out=e)
         np.multiply(e, self._neg_half_inv_ls2, out=e)
+        if self.needs:
+            d = self.second_input(q, g)[:, None] - self._s2
+            np.square(d, out=d)
+            np.multiply(d, self._neg_half_inv_ls2_z, out=d)
+            e += d
         np.exp(e, out=e)  # k_*/sigma_f2, (n, N)
         w = np.matmul(self._weights, e[:, :, None])[:, :, 0]  # (n, N+1)
         mean = w[:, 0]  # eq. 22
@@ -295,17 +346,20 @@ class KMPResidualModel:
         np.maximum(var, VARIANCE_FLOOR, out=var)
         return mean, var
 
-    def predict_batch(self, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def predict_batch(self, qd: np.ndarray, q: np.ndarray | None = None,
+                      g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """qd: (T, n) -> mean (T, n), variance (T, n); for training plots and metrics.
 
-        Same equations and floors as predict(), evaluated in chunks to bound memory.
+        q, g (T, n) as in predict(). Same equations and floors as predict(), evaluated in chunks to bound memory.
         """
         qd = check_batch(qd, self.n_joints)
+        z = np.broadcast_to(self.second_input(q, g), qd.shape)
         mean = np.empty_like(qd)
         var = np.empty_like(qd)
         for start in range(0, qd.shape[0], BATCH_CHUNK):
             rows = slice(start, start + BATCH_CHUNK)
-            e = np.exp(self._neg_half_inv_ls2 * (qd[rows, :, None] - self._s) ** 2)  # (t, n, N)
+            e = np.exp(self._neg_half_inv_ls2 * (qd[rows, :, None] - self._s) ** 2
+                       + self._neg_half_inv_ls2_z * (z[rows, :, None] - self._s2) ** 2)  # (t, n, N)
             w = np.matmul(self._weights, e[..., None])[..., 0]  # (t, n, N+1)
             mean[rows] = w[:, :, 0]  # eq. 22
             quad = np.einsum("tja,tja->tj", w[:, :, 1:], w[:, :, 1:])
@@ -315,10 +369,14 @@ class KMPResidualModel:
         np.maximum(var, VARIANCE_FLOOR, out=var)
         return mean, var
 
+    def with_hyperparameters(self, hyper: KMPHyperparameters) -> KMPResidualModel:
+        """The same reference, inputs and metadata with other hyperparameters (λ₂ calibration)."""
+        return KMPResidualModel(self.reference, hyper, self.metadata, self.inputs)
+
     @classmethod
     def fit(cls, qd: np.ndarray, tau_r: np.ndarray, hyper: KMPHyperparameters,
             n_components: int = 10, n_support: int = 30, seed: int = 0) -> KMPResidualModel:
-        """Fit GMM/GMR to qd (T, n) rad/s and tau_r (T, n) N·m, then build the KMP model."""
+        """Fit GMM/GMR to qd (T, n) rad/s and tau_r (T, n) N·m, then build the q̇-only KMP model."""
         reference = fit_gmr_reference(qd, tau_r, n_components=n_components,
                                       n_support=n_support, seed=seed)
         return cls(reference, hyper)
@@ -326,9 +384,10 @@ class KMPResidualModel:
     def save(self, directory: str | os.PathLike, metadata: dict | None = None) -> None:
         """Writes directory/kmp.npz and directory/kmp.yaml, each atomically.
 
-        kmp.npz holds the arrays s, mu, sigma2, length_scale, sigma_f2, lambda1, lambda2;
-        kmp.yaml the format version, n_joints, n_support, the hyperparameters as lists and
-        `metadata`. Each is written to a temp file in the same directory, then os.replace'd.
+        kmp.npz holds the arrays s, mu, sigma2, s2, length_scale, sigma_f2, lambda1, lambda2,
+        length_scale2; kmp.yaml the format version, n_joints, n_support, the inputs per joint, the
+        hyperparameters as lists and `metadata`. Each is written to a temp file in the same directory,
+        then os.replace'd.
 
         metadata defaults to self.metadata and must contain plain YAML types only. The npz is
         written first, so a crash in between leaves the previous kmp.yaml.
@@ -339,6 +398,7 @@ class KMPResidualModel:
             "format_version": FORMAT_VERSION,
             "n_joints": self.n_joints,
             "n_support": self.n_support,
+            "inputs": list(self.inputs),
             "hyperparameters": {key: getattr(self.hyper, key).tolist() for key in _HYPER_KEYS},
             "metadata": dict(self.metadata if metadata is None else metadata),
         }
@@ -348,20 +408,28 @@ class KMPResidualModel:
     def load(cls, directory: str | os.PathLike) -> KMPResidualModel:
         """Load a model written by save(); the npz is read with np.load(..., allow_pickle=False).
 
-        Missing file, missing array, wrong shape, non-finite values, an unknown format version
-        or hyperparameters in kmp.yaml that disagree with kmp.npz -> ResidualModelError (a
-        ValueError) whose message names the file and the problem.
+        Missing file, missing array, wrong shape, non-finite values, an unknown format version,
+        unknown inputs or hyperparameters in kmp.yaml that disagree with kmp.npz -> ResidualModelError
+        (a ValueError) whose message names the file and the problem. A file without ``inputs`` (written
+        before joints could take a second input) is a q̇-only model without s2 and length_scale2.
         """
         directory = Path(directory)
         yaml_path, npz_path = directory / YAML_NAME, directory / NPZ_NAME
         header = read_model_header(yaml_path, ("n_support",))
-        shapes = {key: (header["n_joints"], header["n_support"]) for key in _REFERENCE_KEYS}
-        shapes.update({key: (header["n_joints"],) for key in _HYPER_KEYS})
+        inputs = header.get("inputs")
+        reference_keys, hyper_keys = _REFERENCE_KEYS, _HYPER_KEYS
+        if inputs is None:
+            reference_keys, hyper_keys = _REFERENCE_KEYS[:3], _HYPER_KEYS[:4]
+        elif not isinstance(inputs, list) or len(inputs) != header["n_joints"] or not set(inputs) <= set(INPUT_KINDS):
+            raise ResidualModelError(f"{yaml_path}: inputs must list one of {list(INPUT_KINDS)} per joint, "
+                                     f"got {inputs!r}")
+        shapes = {key: (header["n_joints"], header["n_support"]) for key in reference_keys}
+        shapes.update({key: (header["n_joints"],) for key in hyper_keys})
         arrays = read_arrays(npz_path, shapes)
-        check_listed_values(yaml_path, npz_path, header.get("hyperparameters"), arrays, _HYPER_KEYS)
+        check_listed_values(yaml_path, npz_path, header.get("hyperparameters"), arrays, hyper_keys)
         try:
-            reference = GMRReference(**{key: arrays[key] for key in _REFERENCE_KEYS})
-            hyper = KMPHyperparameters(**{key: arrays[key] for key in _HYPER_KEYS})
-            return cls(reference, hyper, metadata=header["metadata"])
+            reference = GMRReference(**{key: arrays[key] for key in reference_keys})
+            hyper = KMPHyperparameters(**{key: arrays[key] for key in hyper_keys})
+            return cls(reference, hyper, metadata=header["metadata"], inputs=None if inputs is None else tuple(inputs))
         except ResidualModelError as exc:
             raise ResidualModelError(f"{npz_path}: {exc}") from exc

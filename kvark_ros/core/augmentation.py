@@ -4,7 +4,10 @@
 θ such that, on contact-free motion, ``τ_m − τ_EL ≈ Σ Φ(q, q̇, q̈, τ_m) θ``. The improved model
 applies each effect where it physically acts:
 
-* ``payload``   a rigid body at the flange (10 inertial parameters, flange frame): inside M, C, g;
+* ``payload``   a change of the flange link's 10 inertial parameters (flange frame): an unmodelled tool
+  (mass > 0) or a tool mismatch (mass < 0); inside M, C, g; the robot model refuses a change that leaves
+  the link physically inconsistent;
+* ``link_inertia`` changes of the other links' inertial parameters (10 per link, joint frames): inside M, C, g;
 * ``armature``  rotor inertia on the joint diagonal (pinocchio ``model.armature``): inside M;
 * ``joint_offset`` the encoder reads ``q + δ``: the model is evaluated at ``q − δ``;
 * friction, ``drive_gain``, ``torque_offset``, ``position_ripple``: a joint torque
@@ -28,7 +31,7 @@ import yaml
 TANH_EPSILON = 0.02   # rad/s, default width of the smoothed sign(q̇) of dry friction
 TORQUE_EFFECTS = ("coulomb_friction", "viscous_friction", "stribeck_friction", "drive_gain", "torque_offset",
                   "position_ripple")
-STRUCTURAL_EFFECTS = ("payload", "armature", "joint_offset")
+STRUCTURAL_EFFECTS = ("payload", "link_inertia", "armature", "joint_offset")
 PARAMETERS_PER_JOINT = {"coulomb_friction": 1, "viscous_friction": 1, "stribeck_friction": 1, "drive_gain": 1,
                         "torque_offset": 1, "position_ripple": 2, "armature": 1, "joint_offset": 1}
 REQUIRED_VARIANT = {"stribeck_friction": ("stribeck_velocity",), "position_ripple": ("cycles_per_rev",)}
@@ -77,7 +80,8 @@ class TorqueEffect:
 class Augmentation:
     """A parsed augmentation for an n-joint model.
 
-    payload: (10,) dynamic parameters ``[m, m c, I_origin]`` in the flange frame, or None;
+    payload: (10,) change of the flange link's dynamic parameters ``[m, m c, I_origin]`` in the flange frame,
+    or None; link_inertia: (n − 1, 10) changes of the other links' (joint frames), or None;
     armature: (n,) kg·m²; joint_offset: (n,) rad; torque_effects: the τ_aug terms;
     text: the file's exact text (copied into model directories), sha256: its hash.
     """
@@ -86,6 +90,7 @@ class Augmentation:
     joint_names: tuple[str, ...]
     effect_names: tuple[str, ...]
     payload: np.ndarray | None
+    link_inertia: np.ndarray | None
     armature: np.ndarray
     joint_offset: np.ndarray
     torque_effects: tuple[TorqueEffect, ...]
@@ -119,7 +124,7 @@ def parse_augmentation(text: str, joint_names: Sequence[str], source: str = "aug
     if names != tuple(joint_names):
         raise _fail(source, f"written for joints {list(names)}, the config has {list(joint_names)}")
     n = len(names)
-    payload, armature, offset = None, np.zeros(n), np.zeros(n)
+    payload, links, armature, offset = None, None, np.zeros(n), np.zeros(n)
     torque_effects, effect_names = [], []
     for index, entry in enumerate(document["effects"]):
         where = f"effect {index + 1}"
@@ -141,14 +146,15 @@ def parse_augmentation(text: str, joint_names: Sequence[str], source: str = "aug
         missing = [key for key in REQUIRED_VARIANT.get(name, ()) if key not in variant]
         if missing:
             raise _fail(source, f"{where} ({name}): variant needs {missing}")
-        size = PAYLOAD_SIZE if name == "payload" else PARAMETERS_PER_JOINT[name] * len(joints)
+        size = {"payload": PAYLOAD_SIZE, "link_inertia": PAYLOAD_SIZE * (n - 1)}.get(
+            name, PARAMETERS_PER_JOINT.get(name, 0) * len(joints))
         if theta.size != size:
             raise _fail(source, f"{where} ({name}): theta has {theta.size} values, expected {size}")
         effect_names.append(name)
-        if name == "payload":
-            if theta[0] <= 0.0:
-                raise _fail(source, f"{where} (payload): mass theta[0] must be positive")
+        if name == "payload":       # physical consistency needs the URDF: checked by the robot model
             payload = theta
+        elif name == "link_inertia":
+            links = theta.reshape(n - 1, PAYLOAD_SIZE)
         elif name == "armature":
             if theta.min() < 0.0:
                 raise _fail(source, f"{where} (armature): values must be ≥ 0 kg·m²")
@@ -158,7 +164,7 @@ def parse_augmentation(text: str, joint_names: Sequence[str], source: str = "aug
         else:
             k = PARAMETERS_PER_JOINT[name]
             torque_effects.append(TorqueEffect(name, joints, variant, theta.reshape(len(joints), k)))
-    return Augmentation(source, names, tuple(effect_names), payload, armature, offset, tuple(torque_effects),
+    return Augmentation(source, names, tuple(effect_names), payload, links, armature, offset, tuple(torque_effects),
                         text, hashlib.sha256(text.encode()).hexdigest())
 
 

@@ -25,7 +25,7 @@ import pinocchio as pin
 from kvark_ros.core.augmentation import Augmentation
 from kvark_ros.core.config import EXAMPLE_ROBOT_DATA_PREFIX
 from kvark_ros.core.linalg import solve_spd
-from kvark_ros.core.payload import Payload
+from kvark_ros.core.payload import Payload, inertia_problem
 
 if TYPE_CHECKING:
     from kvark_ros.core.config import EstimatorConfig
@@ -34,6 +34,26 @@ EXAMPLE_ROBOT_DATA_URDFS = {
     "panda": "robots/panda_description/urdf/panda.urdf",
     "ur5": "robots/ur_description/urdf/ur5_robot.urdf",
 }
+
+
+def flange_link_parameters(model: pin.Model, flange_frame_id: int, change: np.ndarray | None = None) -> np.ndarray:
+    """The 10 dynamic parameters (joint frame) of the link carrying the flange, plus ``change`` (10,) given in
+    the flange frame: a change of reference frame of a spatial inertia is linear, so a negative mass (a
+    tool lighter than the URDF's) maps as well as a positive one."""
+    frame = model.frames[flange_frame_id]
+    total = model.inertias[frame.parentJoint].toDynamicParameters().copy()
+    if change is not None:
+        rotation, translation = frame.placement.rotation, frame.placement.translation
+        m, h = float(change[0]), rotation @ np.asarray(change[1:4], dtype=float)
+        ixx, ixy, iyy, ixz, iyz, izz = change[4:10]
+        inertia = rotation @ np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]]) @ rotation.T
+        # parallel axis for first and second moments: I_o' = I_o − [t]×[h]× − [h]×[t]× − m [t]×[t]×
+        t_x, h_x = pin.skew(translation), pin.skew(h)
+        inertia = inertia - t_x @ h_x - h_x @ t_x - m * t_x @ t_x
+        h = h + m * translation
+        total += np.array([m, *h, inertia[0, 0], inertia[0, 1], inertia[1, 1], inertia[0, 2], inertia[1, 2],
+                           inertia[2, 2]])
+    return total
 
 
 class RobotModelError(ValueError):
@@ -159,10 +179,22 @@ class RobotModel:
         if augmentation.joint_names != self.joint_names:
             raise RobotModelError(f"{augmentation.source}: augmentation joints {list(augmentation.joint_names)} "
                                   f"differ from the model's {list(self.joint_names)}")
-        if augmentation.payload is not None:
+        if augmentation.link_inertia is not None:
+            for i, change in enumerate(augmentation.link_inertia, start=1):
+                total = self.model.inertias[i].toDynamicParameters() + change
+                problem = inertia_problem(total)
+                if problem is not None:
+                    raise RobotModelError(f"{augmentation.source}: link_inertia makes the link of joint {i} physically "
+                                          f"inconsistent ({problem}); diagnose again with `kvark diagnose`")
+                self.model.inertias[i] = pin.Inertia.FromDynamicParameters(total)
+        if augmentation.payload is not None:    # a change of the flange link's inertia, possibly lighter (docs §8)
             frame = self.model.frames[self.flange_frame_id]
-            body = pin.Inertia.FromDynamicParameters(np.asarray(augmentation.payload, dtype=float))
-            self.model.inertias[frame.parentJoint] = self.model.inertias[frame.parentJoint] + frame.placement.act(body)
+            total = flange_link_parameters(self.model, self.flange_frame_id, augmentation.payload)
+            problem = inertia_problem(total)
+            if problem is not None:
+                raise RobotModelError(f"{augmentation.source}: the payload effect makes the flange link "
+                                      f"physically inconsistent ({problem}); diagnose again with `kvark diagnose`")
+            self.model.inertias[frame.parentJoint] = pin.Inertia.FromDynamicParameters(total)
         self.model.armature[self._index] += augmentation.armature
         if np.any(augmentation.joint_offset):
             self._q_offset = np.array(augmentation.joint_offset, dtype=float)
@@ -204,6 +236,10 @@ class RobotModel:
         if self.augmentation is not None and self.augmentation.torque_effects:
             u -= self.augmentation.joint_torque(q, qd, tau_m)
         return p, u
+
+    def gravity(self, q: np.ndarray) -> np.ndarray:
+        """g(q): gravity torque (n,) N·m of the (augmented) model, an input of pose-aware residual models."""
+        return pin.computeGeneralizedGravity(self.model, self.data, self._true_q(q)).copy()
 
     def inverse_dynamics(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
         """τ_EL = M q̈ + C q̇ + g (eq. 27), N·m (augmented M, C, g; without τ_aug)."""

@@ -26,7 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -42,17 +42,23 @@ from kvark_ros.core.linalg import single_threaded_blas
 from kvark_ros.core.model_store import TrainedModel, save_model
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.core.training import SAVGOL_WINDOW, smoothed_signals, train_model
+from kvark_ros.core.payload import inertia_problem
+from kvark_ros.core.robot_model import flange_link_parameters
 from kvark_ros.gap.effects import (
     EFFECT_NAMES,
-    MAX_GAIN_ERROR,
     PER_JOINT,
+    Priors,
     Signals,
     Term,
-    payload_parameters,
+    flange_parameter_map,
+    LINK_PRIOR,
+    link_prior_scale,
     physical_parameters,
     signals,
     variants,
 )
+from kvark_ros.gap.diagnosis_report import plot, report
+from kvark_ros.gap.plausibility import RAW_QDD_WINDOW, flange_change, plausibility_warnings, raw_gap, theta_split
 from kvark_ros.io.alignment import load_recordings
 
 HOLDOUT = 0.3            # share of every recording (its end) held out
@@ -60,6 +66,7 @@ MIN_REDUCTION = 0.05     # an effect must cut the held-out gap of its joints by 
 MIN_ABS_REDUCTION = 0.005  # N·m, and by at least this much (filter noise floor)
 DECIMATE_DT = 0.008      # s, sample spacing after smoothing (the filter passes far less than 60 Hz)
 SCREEN_TOP = 4           # candidates refitted jointly per round
+MAX_PRIOR_HALVINGS = 12  # a body's prior σ may shrink 4096-fold toward the URDF before the candidate is refused
 STARTS = 3               # greedy runs, each from another acceptable first effect (see module docstring)
 
 
@@ -104,10 +111,11 @@ def _rmse(r: np.ndarray) -> np.ndarray:
 
 
 class _Fitter:
-    """Bounded weighted least squares of the gap on a set of terms."""
+    """Bounded weighted least squares of the gap on a set of terms, within ``priors``."""
 
-    def __init__(self, train: Signals, held: Signals, weights: np.ndarray) -> None:
-        self.train, self.held, self.w = train, held, weights
+    def __init__(self, train: Signals, held: Signals, weights: np.ndarray, priors: Priors) -> None:
+        self.train, self.held, self.w, self.priors = train, held, weights, priors
+        self.prior_scale: dict[str, np.ndarray] = {}   # Gaussian prior σ of payload / link_inertia θ (∞: none)
         self.t, self.n = train.gap.shape
         self._cache: dict = {}
 
@@ -125,10 +133,19 @@ class _Fitter:
         blocks = [self.design(term) for term in terms]
         a_tr = np.concatenate([b[0] for b in blocks], axis=2)
         a_he = np.concatenate([b[1] for b in blocks], axis=2)
-        lo = np.concatenate([term.bounds()[0] for term in terms])
-        hi = np.concatenate([term.bounds()[1] for term in terms])
+        lo = np.concatenate([term.bounds(self.priors)[0] for term in terms])
+        hi = np.concatenate([term.bounds(self.priors)[1] for term in terms])
         a = (a_tr * self.w[None, :, None]).reshape(-1, a_tr.shape[2])
         b = (self.train.gap * self.w).reshape(-1)
+        pos = 0
+        for term in terms:     # Gaussian priors toward the URDF: rows Δπ/σ = 0 (weighted units), σ = ∞: no row
+            if term.name in self.prior_scale:
+                scale = self.prior_scale[term.name]
+                rows = np.zeros((term.size, a.shape[1]))
+                rows[:, pos:pos + term.size] = np.diag(1.0 / scale)
+                keep = np.isfinite(scale)
+                a, b = np.vstack((a, rows[keep])), np.concatenate((b, np.zeros(int(keep.sum()))))
+            pos += term.size
         scale = np.sqrt(np.mean(np.square(a), axis=0)) + 1e-12       # column scaling for conditioning
         q_mat, r_mat = np.linalg.qr(a / scale)      # same minimiser, a p × p problem for BVLS
         sol = lsq_linear(r_mat, q_mat.T @ b, bounds=(lo * scale, hi * scale), method="bvls")
@@ -151,7 +168,7 @@ def _screen(name: str, variant: dict, fitter: _Fitter, terms: Sequence[Term], r_
     """Candidate joint set of one effect variant: the payload acts on every joint, a coupled effect
     is screened by ``_screen_coupled``, a per-joint effect keeps the joints whose held-out gap
     drops enough when it is added on that joint alone and everything is refitted."""
-    if name == "payload":
+    if name in ("payload", "link_inertia"):
         return Term(name, tuple(range(n)), variant)
     if name not in PER_JOINT:
         return _screen_coupled(name, variant, fitter, terms, n)
@@ -198,19 +215,78 @@ def _screen_coupled(name: str, variant: dict, fitter: _Fitter, terms: Sequence[T
     return Term(name, tuple(chosen), variant) if chosen else None
 
 
-def _without_saturated_gains(fitter: _Fitter, terms: Sequence[Term], term: Term, *fit: np.ndarray) -> tuple:
-    """A drive-gain candidate without the joints whose gain error sits at its bound, refitted.
+def _at_bounds(term: Term, theta: np.ndarray, priors: Priors) -> np.ndarray:
+    """Which of a drive-gain or joint-offset term's joints sit at a bound of ``priors`` (within 1 %)."""
+    lo, hi = term.bounds(priors)
+    span = hi - lo
+    return (theta <= lo + 0.01 * span) | (theta >= hi - 0.01 * span)
 
-    A gain at the bound is another effect seen through τ_m (on a light wrist joint τ_m is mostly
-    friction); left in, it would make the whole candidate inadmissible and hide real gain errors on
-    the other joints."""
+
+def _without_saturated(fitter: _Fitter, terms: Sequence[Term], term: Term, *fit: np.ndarray) -> tuple:
+    """A drive-gain or joint-offset candidate without the joints whose parameter sits at its prior's bound,
+    refitted (repeatedly, until none does).
+
+    A gain or offset at the bound is another effect seen through τ_m or through gravity (on a light wrist joint
+    τ_m is mostly friction; a heavier link looks like an encoder offset); left in, it would stand for that
+    effect with an implausible value and hide real gains or offsets on the other joints."""
+    while term.name in ("drive_gain", "joint_offset"):
+        pos = sum(t.size for t in terms)
+        saturated = _at_bounds(term, fit[0][pos:pos + term.size], fitter.priors)
+        keep = tuple(j for j, bad in zip(term.joints, saturated) if not bad)
+        if keep == term.joints or not keep:
+            break
+        term = Term(term.name, keep, term.variant)
+        fit = fitter.fit([*terms, term])
+    return term, fit
+
+
+def _inconsistent_bodies(fitter: _Fitter, term: Term, theta: np.ndarray) -> list[tuple[int, str]]:
+    """(body index, problem) of every body a payload (index 0) or link_inertia θ makes physically impossible."""
+    if term.name == "payload":
+        problem = inertia_problem(fitter.flange + fitter.flange_map @ theta)
+        return [] if problem is None else [(0, problem)]
+    if term.name == "link_inertia":
+        return [(i, problem) for i, (urdf, change) in enumerate(zip(fitter.links, theta.reshape(-1, 10)))
+                if (problem := inertia_problem(urdf + change)) is not None]
+    return []
+
+
+def _consistent(fitter: _Fitter, terms: Sequence[Term], term: Term, *fit: np.ndarray) -> tuple:
+    """A payload or link_inertia candidate refitted until every body it changes is physically consistent: the
+    prior of each offending body is tightened toward the URDF (σ halved, at most ``MAX_PRIOR_HALVINGS`` times).
+
+    The data identify only some combinations of a link's parameters (a base link turning about z shows only
+    its I_zz); the others follow the prior, and a prior loose enough for the identified ones can let them
+    leave the physical set. Tightening only the offending body keeps the identified parameters free elsewhere.
+    """
+    if term.name not in fitter.prior_scale:
+        return fit
+    for _ in range(MAX_PRIOR_HALVINGS):
+        pos = sum(t.size for t in terms)
+        bad = _inconsistent_bodies(fitter, term, fit[0][pos:pos + term.size])
+        if not bad:
+            break
+        scale = fitter.prior_scale[term.name].copy()
+        for body, _ in bad:
+            block = slice(0, 10) if term.name == "payload" else slice(10 * body, 10 * body + 10)
+            scale[block] *= 0.5            # free parameters (σ = ∞: a payload's mass and first moments) stay free
+        fitter.prior_scale[term.name] = scale
+        fit = fitter.fit([*terms, term])
+    return fit
+
+
+def _inadmissible(fitter: _Fitter, terms: Sequence[Term], term: Term, theta: np.ndarray) -> str | None:
+    """Why a fitted candidate is physically impossible, or None: a payload/tool change must leave the flange
+    link physically consistent; a drive gain or joint offset must not sit at its prior's bound."""
     pos = sum(t.size for t in terms)
-    gains = fit[0][pos:pos + term.size]
-    keep = tuple(j for j, g in zip(term.joints, gains) if abs(g) < 0.99 * MAX_GAIN_ERROR)
-    if keep == term.joints or not keep:
-        return term, fit
-    reduced = Term(term.name, keep, term.variant)
-    return reduced, fitter.fit([*terms, reduced])
+    mine = theta[pos:pos + term.size]
+    bad = _inconsistent_bodies(fitter, term, mine)
+    if bad:
+        body, problem = bad[0]
+        return f"{'flange link' if term.name == 'payload' else f'link of joint {body + 1}'}: {problem}"
+    if term.name in ("drive_gain", "joint_offset") and np.all(_at_bounds(term, mine, fitter.priors)):
+        return f"{term.name} at the bound of its prior on every joint"
+    return None
 
 
 def _affected(before: np.ndarray, after: np.ndarray) -> np.ndarray:
@@ -297,22 +373,16 @@ def _greedy(fitter: _Fitter, effects: Sequence[str], n: int, first_choice: int, 
         for score, term, (th, cv, rt, rh) in (scored if skip else scored[:SCREEN_TOP]):
             if term.name in passed:
                 continue
-            if term.name == "drive_gain":
-                term, (th, cv, rt, rh) = _without_saturated_gains(fitter, terms, term, th, cv, rt, rh)
+            term, (th, cv, rt, rh) = _without_saturated(fitter, terms, term, th, cv, rt, rh)
+            th, cv, rt, rh = _consistent(fitter, terms, term, th, cv, rt, rh)
             k = sum(t.size for t in terms) + term.size
             new_bic = fitter.bic(rt, k)
             after = _rmse(rh)
             joints = _affected(before, after)
-            physical = True
-            if term.name == "payload":
-                pos = sum(t.size for t in terms)
-                physical = payload_parameters(th[pos:pos + term.size], None)[0]["physically_consistent"]
-            elif term.name == "drive_gain":   # a gain error at its bound is another effect seen through τ_m
-                pos = sum(t.size for t in terms)
-                physical = bool(np.all(np.abs(th[pos:pos + term.size]) < 0.99 * MAX_GAIN_ERROR))
-            if new_bic >= bic or len(joints) == 0 or not physical:
+            problem = _inadmissible(fitter, terms, term, th)
+            if new_bic >= bic or len(joints) == 0 or problem is not None:
                 log(f"[diagnose]   rejected {term.name} {list(term.joints)}: ΔBIC {new_bic - bic:+.1f}, "
-                    f"{'' if physical else 'not physically admissible, '}"
+                    f"{'' if problem is None else f'not physically admissible ({problem}), '}"
                     f"held-out gap {np.round(before, 4).tolist()} → {np.round(after, 4).tolist()}")
                 continue
             if skip:
@@ -335,14 +405,19 @@ def _greedy(fitter: _Fitter, effects: Sequence[str], n: int, first_choice: int, 
 
 
 def diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float = HOLDOUT,
-             effects: Sequence[str] = EFFECT_NAMES, log: Callable[[str], None] = print) -> Diagnosis:
-    """Greedy selection of named effects explaining the gap (see module docstring)."""
+             effects: Sequence[str] = EFFECT_NAMES, log: Callable[[str], None] = print,
+             priors: Priors | None = None) -> Diagnosis:
+    """Greedy selection of named effects explaining the gap (see module docstring), within ``priors``
+    (default ``Priors()`` with the flange link's mass of ``robot``)."""
+    priors = priors or Priors()
+    flange = flange_link_parameters(robot.model, robot.flange_frame_id)
+    priors = replace(priors, flange_mass=float(flange[0]))
     with single_threaded_blas():  # hundreds of small least-squares fits
-        return _diagnose(robot, segments, holdout, effects, log)
+        return _diagnose(robot, segments, holdout, effects, log, priors)
 
 
 def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float,
-              effects: Sequence[str], log: Callable[[str], None]) -> Diagnosis:
+              effects: Sequence[str], log: Callable[[str], None], priors: Priors) -> Diagnosis:
     if not 0.05 <= holdout <= 0.9:
         raise ValueError(f"holdout must be in [0.05, 0.9], got {holdout}")
     unknown = sorted(set(effects) - set(EFFECT_NAMES))
@@ -355,7 +430,16 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         f"(every {DECIMATE_DT * 1e3:.0f} ms, last {holdout:.0%} of each recording held out)")
     gap_before = _rmse(held.gap)
     weights = 1.0 / np.maximum(_rmse(train.gap), 0.01)
-    fitter = _Fitter(train, held, weights)
+    fitter = _Fitter(train, held, weights, priors)
+    fitter.flange = flange_link_parameters(robot.model, robot.flange_frame_id)
+    fitter.flange_map = flange_parameter_map(robot)[1]
+    link_scale = link_prior_scale(robot)
+    flange_moment = float(np.max(np.abs(fitter.flange[[4, 6, 9]])))
+    # payload: mass and first moments free (a tool of any mass and CoM); its second moments have a prior of
+    # 30 % of the flange link's largest moment, as link_inertia's.
+    payload_scale = np.concatenate([np.full(4, np.inf), np.full(6, LINK_PRIOR["inertia"] * flange_moment)])
+    fitter.prior_scale = {"link_inertia": link_scale, "payload": payload_scale}
+    fitter.links = [robot.model.inertias[i].toDynamicParameters() for i in range(1, n)]
     log(f"[diagnose] held-out gap per joint before: {np.round(gap_before, 4).tolist()} N·m")
     best = None
     first_round = _scored_candidates(fitter, [], held.gap, effects, n)    # shared by every start
@@ -379,7 +463,9 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         cv = None if cov is None else cov[pos:pos + term.size, pos:pos + term.size]
         pos += term.size
         params, ci = physical_parameters(term, th, cv)
-        joints = list(term.joints) if term.name != "payload" else info["affected"]
+        joints = list(term.joints) if term.name not in ("payload", "link_inertia") else info["affected"]
+        if term.name == "payload":
+            params.update(flange_change(fitter.flange, fitter.flange_map, th))
         result_effects.append({"name": term.name, "joints": [int(j) for j in joints], "parameters": params,
                                "ci95": ci, "gap_reduction": info["gap_reduction"],
                                "held_out_rmse_before": info["held_out_rmse_before"],
@@ -389,12 +475,21 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         "robot_joint_names": list(robot.joint_names),
         "gap_before": {"joint_rmse": gap_before.tolist(), "joint_rmse_mean": float(gap_before.mean())},
         "gap_after": {"joint_rmse": gap_after.tolist(), "joint_rmse_mean": float(gap_after.mean())},
+        "gap_filtering": f"τ_m and q̇ through a {SAVGOL_WINDOW * 1e3:.0f} ms Savitzky-Golay filter (as kvark train)",
+        "gap_raw": raw_gap(robot, segments, holdout, terms, theta_split(terms, theta)),
         "effects": result_effects,
+        "priors": {"max_gain_error": priors.max_gain_error, "max_joint_offset_deg": float(np.degrees(
+            priors.max_joint_offset)), "flange_mass": priors.flange_mass},
+        "warnings": plausibility_warnings(terms, theta_split(terms, theta), priors, robot.joint_names),
         "holdout": holdout, "samples": {"train": len(train), "held_out": len(held)},
         "seconds": round(time.perf_counter() - started, 1),
     }
     log(f"[diagnose] held-out gap per joint after: {np.round(gap_after, 4).tolist()} N·m "
-        f"(mean {gap_before.mean():.4f} → {gap_after.mean():.4f})")
+        f"(mean {gap_before.mean():.4f} → {gap_after.mean():.4f}); on raw τ_m with q̈ from a "
+        f"{RAW_QDD_WINDOW * 1e3:.0f} ms filter {result['gap_raw']['before_mean']:.4f} → "
+        f"{result['gap_raw']['after_mean']:.4f}")
+    for warning in result["warnings"]:
+        log(f"[diagnose] warning: {warning}")
     return Diagnosis(result, terms, thetas, held, r_he)
 
 
@@ -445,68 +540,6 @@ def write_outputs(diag: Diagnosis, robot: RobotModel, out: Path, robot_name: str
     return paths
 
 
-def report(diag: Diagnosis, robot: RobotModel) -> str:
-    r = diag.result
-    lines = ["# Model-gap diagnosis", "",
-             f"Held-out samples: {r['samples']['held_out']} (last {r['holdout']:.0%} of each recording).", "",
-             "| joint | gap before (N·m) | gap after (N·m) | reduction |", "|---|---|---|---|"]
-    for j, name in enumerate(robot.joint_names):
-        b, a = r["gap_before"]["joint_rmse"][j], r["gap_after"]["joint_rmse"][j]
-        lines.append(f"| {name} | {b:.4f} | {a:.4f} | {1 - a / b if b > 0 else 0:.0%} |")
-    lines += [f"| mean | {r['gap_before']['joint_rmse_mean']:.4f} | {r['gap_after']['joint_rmse_mean']:.4f} | |",
-              "", "## Effects found", ""]
-    if not r["effects"]:
-        lines.append("None: the nominal model explains the data to within the noise.")
-    for eff in r["effects"]:
-        lines.append(f"- **{eff['name']}** on joints {[robot.joint_names[j] for j in eff['joints']]}: "
-                     f"held-out gap of those joints −{eff['gap_reduction']:.0%}")
-        lines.append(f"  - parameters: `{json.dumps(eff['parameters'])}`")
-        lines.append(f"  - 95 % half-widths (least-squares covariance; samples are correlated, so "
-                     f"optimistic): `{json.dumps(eff['ci95'])}`")
-    lines += ["", "Plots: `gap_per_joint.png`, `residual_vs_velocity.png`, `residual_vs_position.png`.", ""]
-    return "\n".join(lines)
-
-
-def plot(diag: Diagnosis, robot: RobotModel, out: Path) -> list[Path]:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    r, n = diag.result, robot.n
-    paths = []
-    fig, ax = plt.subplots(figsize=(1.2 * n + 3, 3.5))
-    x = np.arange(n)
-    ax.bar(x - 0.2, r["gap_before"]["joint_rmse"], 0.4, label="before")
-    ax.bar(x + 0.2, r["gap_after"]["joint_rmse"], 0.4, label="after")
-    ax.set_xticks(x, [str(j + 1) for j in x])
-    ax.set_xlabel("joint")
-    ax.set_ylabel("held-out gap RMSE (N·m)")
-    ax.legend()
-    fig.tight_layout()
-    paths.append(out / "gap_per_joint.png")
-    fig.savefig(paths[-1], dpi=90)
-    plt.close(fig)
-    for key, label, values in (("velocity", "q̇ (rad/s)", diag.held.qd), ("position", "q (rad)", diag.held.q)):
-        cols = 4 if n > 6 else 3
-        rows = int(np.ceil(n / cols))
-        fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3 * rows), squeeze=False)
-        for j, axj in enumerate(axes.flat):
-            if j >= n:
-                axj.set_visible(False)
-                continue
-            axj.scatter(values[:, j], diag.held.gap[:, j], s=2, alpha=0.4, label="before")
-            axj.scatter(values[:, j], diag.held_after[:, j], s=2, alpha=0.4, label="after")
-            axj.set_title(robot.joint_names[j], fontsize=9)
-            axj.set_xlabel(label)
-            axj.set_ylabel("gap (N·m)")
-        axes.flat[0].legend(markerscale=4)
-        fig.tight_layout()
-        paths.append(out / f"residual_vs_{key}.png")
-        fig.savefig(paths[-1], dpi=80)
-        plt.close(fig)
-    return paths
-
-
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "diagnose", help="name the physical effects the nominal model lacks, from contact-free bags",
@@ -519,8 +552,23 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--holdout", type=float, default=HOLDOUT,
                         help="share of every recording (its end) held out for selection (default 0.3)")
     parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--effects", type=_effect_list, default=EFFECT_NAMES, metavar="A,B",
+                        help=f"restrict the library to these effects (default all: {','.join(EFFECT_NAMES)})")
+    parser.add_argument("--max-gain-error", type=float, default=Priors.max_gain_error, metavar="X",
+                        help="prior of drive_gain: |1 − g| ≤ X (default 0.1; torque-sensing and calibrated "
+                             "current-based drives)")
+    parser.add_argument("--max-joint-offset", type=float, default=float(np.degrees(Priors.max_joint_offset)),
+                        metavar="DEG", help="prior of joint_offset: |δ| ≤ DEG degrees (default 1; absolute encoders)")
     parser.add_argument("--no-plots", action="store_true", help="do not write plots")
     parser.set_defaults(run=run)
+
+
+def _effect_list(text: str) -> tuple[str, ...]:
+    names = tuple(name.strip() for name in text.split(",") if name.strip())
+    unknown = sorted(set(names) - set(EFFECT_NAMES))
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"unknown effects {unknown or [text]}; known: {','.join(EFFECT_NAMES)}")
+    return names
 
 
 def run(args: argparse.Namespace) -> int:
@@ -528,6 +576,9 @@ def run(args: argparse.Namespace) -> int:
     robot = RobotModel.from_config(config)
     segments = load_recordings(args.bags, config.joint_names, config.input.command_max_age, "diagnose")
     log = lambda line: print(line, flush=True)   # noqa: E731
-    diag = diagnose(robot, segments, args.holdout, log=log)
+    if args.max_gain_error <= 0 or args.max_joint_offset <= 0:
+        raise ValueError("--max-gain-error and --max-joint-offset must be positive")
+    priors = Priors(max_gain_error=args.max_gain_error, max_joint_offset=float(np.radians(args.max_joint_offset)))
+    diag = diagnose(robot, segments, args.holdout, effects=args.effects, log=log, priors=priors)
     write_outputs(diag, robot, Path(args.out), config.robot, plots=not args.no_plots, log=log)
     return 0

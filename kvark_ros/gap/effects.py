@@ -9,8 +9,14 @@ the sign chosen so that θ is the physical parameter (sign conventions of ``kvar
 * ``viscous_friction``  ``F_v q̇``, F_v ≥ 0 N·m·s/rad;
 * ``stribeck_friction`` ``(F_s − F_c) exp(−(q̇/v_s)²) tanh(q̇/ε)``, ≥ 0, v_s from a small grid;
 * ``armature``          ``I_a q̈``, I_a ≥ 0 kg·m² (rotor inertia seen at the joint);
-* ``payload``           ``Y_flange(q, q̇, q̈) π``: the 10 inertial parameters of a rigid body in the
-  flange frame (pinocchio's joint-torque regressor of the flange's link); mass > 0;
+* ``payload``           ``Y_flange(q, q̇, q̈) π``: the change of the 10 inertial parameters of the
+  flange's link, in the flange frame (pinocchio's joint-torque regressor of that link): an unmodelled
+  tool or payload (mass > 0) or a tool mismatch (mass < 0: the URDF's tool is heavier than what the
+  robot carries), admissible while the link's total inertia stays physically consistent;
+* ``link_inertia``      ``Y_links(q, q̇, q̈) Δπ``: changes of the 10 inertial parameters of every link but the
+  flange's (joint frames; CAD errors of mass, centre of mass, inertia), regularised toward the URDF by a
+  Gaussian prior (``LINK_PRIOR``): directions the data do not identify stay at the URDF; admissible while
+  every link stays physically consistent;
 * ``drive_gain``        the drive applies ``g τ_m``: gap ``(1 − g) τ_m``; reported as g;
 * ``torque_offset``     the drive applies ``τ_m + o``: gap ``−o``;
 * ``position_ripple``   the drive applies ``a sin(k q) + b cos(k q)``: gap ``−(a sin + b cos)``;
@@ -29,15 +35,35 @@ from kvark_ros.core.augmentation import TANH_EPSILON, joint_columns
 from kvark_ros.core.robot_model import RobotModel
 
 EFFECT_NAMES = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "payload",
-                "drive_gain", "torque_offset", "position_ripple", "joint_offset")
+                "link_inertia", "drive_gain", "torque_offset", "position_ripple", "joint_offset")
 PER_JOINT = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "drive_gain",
              "torque_offset", "position_ripple")
 STRIBECK_VELOCITIES = (0.03, 0.1, 0.3)        # rad/s, grid of v_s
 COULOMB_WIDTHS = (0.02, 0.05, 0.1, 0.2)       # rad/s, grid of ε
 RIPPLE_CYCLES = (2, 3, 4, 6, 8, 12, 16, 24, 32, 50, 64, 100)   # cycles per revolution, grid of k
 PAYLOAD_PARAMETERS = ("mass", "mx", "my", "mz", "ixx", "ixy", "iyy", "ixz", "iyz", "izz")
-MIN_MASS = 1e-3                               # kg, lower bound of a payload mass
-MAX_GAIN_ERROR = 0.5                          # |g − 1| bound of drive_gain
+MIN_MASS = 1e-3                               # kg, smallest total mass of the flange's link
+# Prior standard deviations of link_inertia (CAD-like errors): mass 20 % of the link's, first moment
+# m·3 cm + 20 %, second moments 30 % of the link's largest moment about its origin.
+LINK_PRIOR = {"mass": 0.2, "com_m": 0.03, "first_moment": 0.2, "inertia": 0.3}
+
+
+@dataclass(frozen=True)
+class Priors:
+    """Plausible ranges the fit is bounded to (docs/method.md §8); a parameter at one of them is a warning.
+
+    max_gain_error: |1 − g| of drive_gain. 0.1 by default: torque-sensing joints (Panda, KUKA) measure the
+        link-side torque and current-based drives (UR) are calibrated within a few per cent; a gain
+        further off is another effect (payload, inertia) seen through τ_m.
+    max_joint_offset: |δ| of joint_offset, rad. 1° by default: absolute encoders are calibrated at the
+        factory; a larger offset is a gravity-like effect (link mass, CoM) in disguise.
+    flange_mass: the URDF's mass of the flange's link with what is fixed to it (kg); a tool mismatch can
+        remove at most that.
+    """
+
+    max_gain_error: float = 0.1
+    max_joint_offset: float = float(np.radians(1.0))
+    flange_mass: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,13 +78,15 @@ class Signals:
     gap: np.ndarray
     payload_regressor: np.ndarray
     position_jacobian: np.ndarray
+    link_regressor: np.ndarray
 
     def __len__(self) -> int:
         return len(self.q)
 
     def take(self, index: np.ndarray) -> "Signals":
         return Signals(*(getattr(self, f)[index] for f in ("q", "qd", "qdd", "tau_m", "gap",
-                                                            "payload_regressor", "position_jacobian")))
+                                                            "payload_regressor", "position_jacobian",
+                                                            "link_regressor")))
 
 
 def flange_parameter_map(robot: RobotModel) -> tuple[int, np.ndarray]:
@@ -87,13 +115,29 @@ def signals(robot: RobotModel, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, t
     gap = np.empty((t, n))
     payload = np.empty((t, n, 10))
     sensitivity = np.empty((t, n, n))
+    links = np.empty((t, n, 10 * (jid - 1)))
     for k in range(t):
         gap[k] = tau_m[k] - robot.inverse_dynamics(q[k], qd[k], qdd[k])
         y = pin.computeJointTorqueRegressor(model, data, q[k], qd[k], qdd[k])
         payload[k] = y[:, 10 * (jid - 1):10 * jid] @ a_map
+        links[k] = y[:, :10 * (jid - 1)]
         pin.computeRNEADerivatives(model, data, q[k], qd[k], qdd[k])
         sensitivity[k] = data.dtau_dq
-    return Signals(q, qd, qdd, tau_m, gap, payload, sensitivity)
+    return Signals(q, qd, qdd, tau_m, gap, payload, sensitivity, links)
+
+
+def link_prior_scale(robot: RobotModel) -> np.ndarray:
+    """Prior standard deviations (10 per link before the flange's, ``LINK_PRIOR``) of link_inertia's Δπ."""
+    jid = robot.model.frames[robot.flange_frame_id].parentJoint
+    scales = []
+    for i in range(1, jid):
+        pi = robot.model.inertias[i].toDynamicParameters()
+        m = max(float(pi[0]), 0.1)
+        moment = max(float(np.max(np.abs(pi[[4, 6, 9]]))), m * LINK_PRIOR["com_m"] ** 2)
+        scales.append(np.concatenate([[LINK_PRIOR["mass"] * m],
+                                      m * LINK_PRIOR["com_m"] + LINK_PRIOR["first_moment"] * np.abs(pi[1:4]),
+                                      np.full(6, LINK_PRIOR["inertia"] * moment)]))
+    return np.concatenate(scales)
 
 
 @dataclass(frozen=True)
@@ -114,21 +158,26 @@ class Term:
                 "stribeck_friction": ("static_minus_coulomb",), "armature": ("armature",),
                 "drive_gain": ("gain_error_neg",), "torque_offset": ("offset",),
                 "position_ripple": ("sin_amplitude", "cos_amplitude"), "joint_offset": ("offset",),
-                "payload": PAYLOAD_PARAMETERS}[self.name]
+                "payload": PAYLOAD_PARAMETERS, "link_inertia": PAYLOAD_PARAMETERS}[self.name]
 
     @property
     def size(self) -> int:
         k = len(self.per_joint_parameters)
+        if self.name == "link_inertia":
+            return k * (len(self.joints) - 1)          # every link but the flange's
         return k if self.name == "payload" else k * len(self.joints)
 
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+    def bounds(self, priors: Priors) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of θ (size,) under ``priors``."""
         lo, hi = np.full(self.size, -np.inf), np.full(self.size, np.inf)
         if self.name in ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature"):
             lo[:] = 0.0
-        elif self.name == "payload":
-            lo[0] = MIN_MASS
-        elif self.name == "drive_gain":   # θ = 1 − g; a drive delivering < 50 % or > 150 % is not a gain error
-            lo[:], hi[:] = -MAX_GAIN_ERROR, MAX_GAIN_ERROR
+        elif self.name == "payload":      # the link's total mass stays positive
+            lo[0] = MIN_MASS - priors.flange_mass
+        elif self.name == "drive_gain":   # θ = 1 − g
+            lo[:], hi[:] = -priors.max_gain_error, priors.max_gain_error
+        elif self.name == "joint_offset":
+            lo[:], hi[:] = -priors.max_joint_offset, priors.max_joint_offset
         return lo, hi
 
     def design(self, s: Signals) -> np.ndarray:
@@ -136,6 +185,8 @@ class Term:
         t, n = s.q.shape
         if self.name == "payload":
             return s.payload_regressor
+        if self.name == "link_inertia":
+            return s.link_regressor
         out = np.zeros((t, n, self.size))
         for i, j in enumerate(self.joints):
             if self.name == "joint_offset":
@@ -168,6 +219,11 @@ def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None) -
     half = 1.96 * sd
     if term.name == "payload":
         return payload_parameters(theta, cov)
+    if term.name == "link_inertia":     # per link (joint frame): Δm kg, Δ(m c) kg·m, ΔI kg·m² about the joint origin
+        values, widths = theta.reshape(-1, 10), half.reshape(-1, 10)
+        return ({"mass_change": values[:, 0].tolist(), "first_moment_change": values[:, 1:4].tolist(),
+                 "inertia_change": values[:, 4:].tolist()},
+                {"mass_change": widths[:, 0].tolist(), "first_moment_change": widths[:, 1:4].tolist()})
     k = len(term.per_joint_parameters)
     values = theta.reshape(len(term.joints), k)
     widths = half.reshape(len(term.joints), k)

@@ -118,7 +118,8 @@ def test_batch_and_single_sample_augmentation_torques_agree(augmentation, rng):
     ({"effects": [{"name": "armature", "joint_indices": [0], "theta": [-0.1]}]}, "≥ 0"),
     ({"effects": [{"name": "torque_offset", "joint_indices": [0], "theta": [float("nan")]}]}, "NaN"),
     ({"effects": [{"name": "position_ripple", "joint_indices": [0], "theta": [1.0, 1.0]}]}, "cycles_per_rev"),
-    ({"effects": [{"name": "payload", "joint_indices": [0], "theta": [-1.0] + [0.0] * 9}]}, "mass"),
+    # a negative payload mass is a tool mismatch, refused only if the link becomes unphysical (test_gap_priors)
+    ({"effects": [{"name": "link_inertia", "joint_indices": [0], "theta": [0.0] * 10}]}, "expected 60"),
     ({"effects": "none"}, "'effects' list"),
 ])
 def test_bad_augmentation_files_are_rejected_with_the_reason(tmp_path, change, message):

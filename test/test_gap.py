@@ -14,6 +14,7 @@ pytest.importorskip("mujoco")
 from kvark_ros.core.config import load_config  # noqa: E402
 from kvark_ros.core.robot_model import RobotModel  # noqa: E402
 from kvark_ros.gap import diagnose as gap_cli  # noqa: E402
+from kvark_ros.gap.effects import Priors
 from kvark_ros.gap.diagnose import diagnose, write_outputs  # noqa: E402
 from kvark_ros.gap.effects import EFFECT_NAMES, augmentation_gap  # noqa: E402
 from kvark_ros.io import write_run  # noqa: E402
@@ -93,7 +94,11 @@ def runs():
 
 @pytest.fixture(scope="module")
 def diagnoses(runs, robots):
-    return {key: diagnose(robots[key[0]], [estimator_inputs(run)], log=lambda _: None)
+    # The test plants' drive gains (0.9-1.1, current-based drives) and encoder offsets (up to 2.3°, incremental
+    # encoders) lie outside the default priors (±10 %, ±1°), so the fits get the priors a user of such a robot
+    # passes (`--max-gain-error 0.2 --max-joint-offset 5`); the default priors are tested in test_gap_priors.
+    priors = Priors(max_gain_error=0.2, max_joint_offset=float(np.radians(5.0)))
+    return {key: diagnose(robots[key[0]], [estimator_inputs(run)], log=lambda _: None, priors=priors)
             for key, run in runs.items()}
 
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -57,7 +57,7 @@ from kvark_ros.gap.effects import (
     signals,
     variants,
 )
-from kvark_ros.gap.diagnosis_report import plot, report
+from kvark_ros.gap.diagnosis_report import Diagnosis, plot, report
 from kvark_ros.gap.plausibility import RAW_QDD_WINDOW, flange_change, plausibility_warnings, raw_gap, theta_split
 from kvark_ros.io.alignment import load_recordings
 
@@ -68,18 +68,6 @@ DECIMATE_DT = 0.008      # s, sample spacing after smoothing (the filter passes 
 SCREEN_TOP = 4           # candidates refitted jointly per round
 MAX_PRIOR_HALVINGS = 12  # a body's prior σ may shrink 4096-fold toward the URDF before the candidate is refused
 STARTS = 3               # greedy runs, each from another acceptable first effect (see module docstring)
-
-
-@dataclass
-class Diagnosis:
-    """Result of ``diagnose``: the JSON document, the accepted terms and their raw θ, and the
-    held-out signals with the gap before/after (for plots)."""
-
-    result: dict
-    terms: list[Term]
-    theta: list[np.ndarray]
-    held: Signals
-    held_after: np.ndarray
 
 
 def prepare(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float) -> tuple[Signals, Signals]:
@@ -253,7 +241,8 @@ def _inconsistent_bodies(fitter: _Fitter, term: Term, theta: np.ndarray) -> list
 
 def _consistent(fitter: _Fitter, terms: Sequence[Term], term: Term, *fit: np.ndarray) -> tuple:
     """A payload or link_inertia candidate refitted until every body it changes is physically consistent: the
-    prior of each offending body is tightened toward the URDF (σ halved, at most ``MAX_PRIOR_HALVINGS`` times).
+    prior of each offending body is tightened toward the URDF (σ set to ``first_prior`` where it was ∞, else
+    halved; at most ``MAX_PRIOR_HALVINGS`` times).
 
     The data identify only some combinations of a link's parameters (a base link turning about z shows only
     its I_zz); the others follow the prior, and a prior loose enough for the identified ones can let them
@@ -269,7 +258,8 @@ def _consistent(fitter: _Fitter, terms: Sequence[Term], term: Term, *fit: np.nda
         scale = fitter.prior_scale[term.name].copy()
         for body, _ in bad:
             block = slice(0, 10) if term.name == "payload" else slice(10 * body, 10 * body + 10)
-            scale[block] *= 0.5            # free parameters (σ = ∞: a payload's mass and first moments) stay free
+            first = fitter.first_prior[term.name][block]
+            scale[block] = np.where(np.isfinite(scale[block]), 0.5 * scale[block], first)   # ∞ stays ∞ where first is
         fitter.prior_scale[term.name] = scale
         fit = fitter.fit([*terms, term])
     return fit
@@ -435,10 +425,11 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
     fitter.flange_map = flange_parameter_map(robot)[1]
     link_scale = link_prior_scale(robot)
     flange_moment = float(np.max(np.abs(fitter.flange[[4, 6, 9]])))
-    # payload: mass and first moments free (a tool of any mass and CoM); its second moments have a prior of
-    # 30 % of the flange link's largest moment, as link_inertia's.
-    payload_scale = np.concatenate([np.full(4, np.inf), np.full(6, LINK_PRIOR["inertia"] * flange_moment)])
-    fitter.prior_scale = {"link_inertia": link_scale, "payload": payload_scale}
+    # payload: free (a tool of any mass, CoM and inertia); only if the flange link comes out inconsistent do its
+    # second moments get a prior, first 30 % of the flange link's largest moment (as link_inertia's), then halved.
+    fitter.prior_scale = {"link_inertia": link_scale, "payload": np.full(10, np.inf)}
+    fitter.first_prior = {"link_inertia": link_scale, "payload": np.concatenate(
+        [np.full(4, np.inf), np.full(6, LINK_PRIOR["inertia"] * flange_moment)])}
     fitter.links = [robot.model.inertias[i].toDynamicParameters() for i in range(1, n)]
     log(f"[diagnose] held-out gap per joint before: {np.round(gap_before, 4).tolist()} N·m")
     best = None

@@ -3,18 +3,28 @@ effects with their parameters) and the plots (gap per joint, residual against ve
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from kvark_ros.core.robot_model import RobotModel
-
-if TYPE_CHECKING:
-    from kvark_ros.gap.diagnose import Diagnosis
+from kvark_ros.gap.effects import Signals, Term
 
 
-def report(diag: "Diagnosis", robot: RobotModel) -> str:
+@dataclass
+class Diagnosis:
+    """Result of ``diagnose``: the JSON document, the accepted terms and their raw θ, and the
+    held-out signals with the gap before/after (for plots)."""
+
+    result: dict
+    terms: list[Term]
+    theta: list[np.ndarray]
+    held: Signals
+    held_after: np.ndarray
+
+
+def report(diag: Diagnosis, robot: RobotModel) -> str:
     r = diag.result
     lines = ["# Model-gap diagnosis", "",
              f"Held-out samples: {r['samples']['held_out']} (last {r['holdout']:.0%} of each recording).", "",
@@ -50,7 +60,7 @@ def report(diag: "Diagnosis", robot: RobotModel) -> str:
     return "\n".join(lines)
 
 
-def plot(diag: "Diagnosis", robot: RobotModel, out: Path) -> list[Path]:
+def plot(diag: Diagnosis, robot: RobotModel, out: Path) -> list[Path]:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

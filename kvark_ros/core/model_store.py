@@ -60,12 +60,14 @@ def save_model(directory: str | os.PathLike, model: TrainedModel) -> None:
         model.residual.save(staging)
         for baseline in model.baselines.values():
             baseline.save(staging)
+        # info (long, free-form) comes before the keys load_model requires, so a file cut short anywhere in it
+        # lacks them and is refused.
         document = {"format": MODEL_FORMAT, "kvark_ros_version": __version__, "robot": model.robot,
-                    "joint_names": list(model.joint_names), "filter_tuning": model.tuning.to_dict(),
+                    "joint_names": list(model.joint_names), "info": model.info,
+                    "filter_tuning": model.tuning.to_dict(),
                     "baselines": {name: model.baseline_tunings[name].to_dict() for name in model.baselines},
                     "momentum_noise": None if model.momentum_noise is None else model.momentum_noise.to_dict(),
-                    "augmentation_sha256": None if model.augmentation is None else model.augmentation.sha256,
-                    "info": model.info}
+                    "augmentation_sha256": None if model.augmentation is None else model.augmentation.sha256}
         if model.augmentation is not None:
             (staging / AUGMENTATION_FILE).write_text(model.augmentation.text)
         (staging / MODEL_FILE).write_text(yaml.safe_dump(document, sort_keys=False))
@@ -110,7 +112,7 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
         robot = str(document["robot"])
         baseline_tunings = {name: FilterTuning.from_dict(values)
                             for name, values in (document.get("baselines") or {}).items()}
-        noise = document.get("momentum_noise")
+        noise = document["momentum_noise"]      # written after info: absent when the file was cut short
         momentum_noise = None if noise is None else MomentumNoise.from_dict(noise)
     except (KeyError, TypeError, ValueError) as exc:
         raise ResidualModelError(f"{path}: incomplete or invalid model file ({exc}); retrain the model") from exc

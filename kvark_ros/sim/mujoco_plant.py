@@ -2,7 +2,9 @@
 
 MuJoCo and pinocchio are two independent dynamics engines; on the bare URDF they agree to
 rounding error, so every difference an estimator sees comes from the plant file (friction,
-armature, payload, drive gain, offset, ripple) or from external forces.
+armature, link inertia, tool, payload, drive gain, offsets, ripple, drifts) or from external forces.
+The rigid body is compiled from ``true_model.true_urdf`` (payload included), the URDF the oracle
+can load in pinocchio.
 
 Only inertias matter: visual and collision geometry are stripped, joints that are not
 simulated (the Panda's fingers) become fixed (pinocchio locks them at 0 too), URDF joint
@@ -13,6 +15,10 @@ Joint-level plant effects are applied as generalized forces on every physics ste
 at the start of the step. Smooth friction (Gaz sigmoid, viscous) is explicit; dry
 (Coulomb/Stribeck) friction is MuJoCo's ``dof_frictionloss`` constraint, which also holds the
 joint at rest (stiction) and is stable for any friction level.
+
+The plant clock ``MujocoPlant.time`` (s since the robot was switched on) drives the friction and
+torque-offset drifts: ``reset`` sets it (0 unless told: a cold robot) and every step advances it
+by ``PHYSICS_DT``.
 """
 from __future__ import annotations
 
@@ -24,14 +30,14 @@ import mujoco
 import numpy as np
 import numpy.typing as npt
 
-from kvark_ros.core.payload import Payload
-from kvark_ros.sim.plant import PlantSpec, actuator_torque, dry_friction_level, friction_torque
-from kvark_ros.sim.robots import RobotSetup, urdf_xml
+from kvark_ros.sim.plant import (PlantSpec, actuator_torque, dry_friction_level, friction_drift_factor,
+                                 friction_torque, torque_offset_drift)
+from kvark_ros.sim.robots import RobotSetup
+from kvark_ros.sim.true_model import true_urdf
 
 FloatArray = npt.NDArray[np.float64]
 PHYSICS_DT = 1e-3          # s
 GRAVITY = (0.0, 0.0, -9.81)  # m/s², base frame
-PAYLOAD_BODY = "kvark_payload"
 # Dry friction as a near-hard constraint: time constant 2·dt and impedance ≈ 1 keep the creep
 # velocity under a held load around 1e-3 rad/s (MuJoCo's defaults let it creep ~0.05 rad/s).
 _DRY_FRICTION_SOLREF = (2.0 * PHYSICS_DT, 1.0)
@@ -75,25 +81,11 @@ def _strip_urdf(urdf: str, joint_names: Sequence[str]) -> str:
     return ET.tostring(root, encoding="unicode")
 
 
-def _add_payload(spec: mujoco.MjSpec, flange: str, payload: Payload) -> None:
-    """Weld the payload to the flange body as a rigid body with its own inertia."""
-    ixx, iyy, izz, ixy, ixz, iyz = payload.inertia
-    principal, axes = np.linalg.eigh(np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]]))
-    if np.linalg.det(axes) < 0.0:
-        axes[:, 2] *= -1.0
-    quat = np.zeros(4)
-    mujoco.mju_mat2Quat(quat, axes.flatten())
-    spec.body(flange).add_body(name=PAYLOAD_BODY, mass=payload.mass, ipos=list(payload.com),
-                               iquat=list(quat), inertia=list(np.clip(principal, 0.0, None)),
-                               explicitinertial=True)
-
-
 def build_model(setup: RobotSetup, plant: PlantSpec) -> mujoco.MjModel:
-    """Compile the MuJoCo model of ``setup`` with the inertial part of ``plant``."""
-    spec = mujoco.MjSpec.from_string(_strip_urdf(urdf_xml(setup.urdf), setup.joint_names))
-    if plant.payload is not None:
-        _add_payload(spec, setup.flange_frame, plant.payload)
-    model = spec.compile()
+    """Compile the MuJoCo model of ``setup`` with the inertial part of ``plant`` (its true rigid
+    body with the payload, and the armature)."""
+    model = mujoco.MjSpec.from_string(_strip_urdf(true_urdf(setup, plant, with_payload=True),
+                                                  setup.joint_names)).compile()
     names = tuple(model.joint(i).name for i in range(model.njnt))
     if names != setup.joint_names or model.nv != setup.n:
         raise ValueError(f"{setup.name}: MuJoCo joints {names} differ from {setup.joint_names}")
@@ -120,6 +112,13 @@ class MujocoPlant:
         self.plant = plant
         self.model = build_model(setup, plant)
         self.data = mujoco.MjData(self.model)
+        self._start = 0.0
+        self._steps = 0
+
+    @property
+    def time(self) -> float:
+        """The plant clock, s since the robot was switched on (the drifts depend on it)."""
+        return self._start + self._steps * PHYSICS_DT
 
     @property
     def q(self) -> FloatArray:
@@ -147,19 +146,24 @@ class MujocoPlant:
             body = int(self.model.body_parentid[body])
         return False
 
-    def reset(self, q: npt.ArrayLike, qd: npt.ArrayLike | None = None) -> None:
-        """Put the arm at joint state (q rad, q̇ rad/s) at time 0, with no external wrench."""
+    def reset(self, q: npt.ArrayLike, qd: npt.ArrayLike | None = None, time: float = 0.0) -> None:
+        """Put the arm at joint state (q rad, q̇ rad/s) with no external wrench and the plant clock
+        at ``time`` s since power-on (0: cold)."""
+        if not np.isfinite(time) or time < 0.0:
+            raise ValueError(f"plant time must be >= 0 s, got {time}")
         mujoco.mj_resetData(self.model, self.data)
         self.data.qpos[:] = q
         self.data.qvel[:] = 0.0 if qd is None else qd
+        self._start, self._steps = float(time), 0
         self._update_dry_friction()
         mujoco.mj_forward(self.model, self.data)
 
     def _update_dry_friction(self) -> None:
-        """Stribeck: the dry-friction level depends on q̇; MuJoCo reads it when it builds the
-        constraints (position stage), so it is set before that stage."""
-        if self.plant.friction_model == "stribeck":
-            self.model.dof_frictionloss[:] = dry_friction_level(self.plant, self.data.qvel)
+        """The dry-friction level depends on q̇ (Stribeck) and on the plant clock (drift); MuJoCo
+        reads it when it builds the constraints (position stage), so it is set before that stage."""
+        if self.plant.dry_friction:
+            self.model.dof_frictionloss[:] = (friction_drift_factor(self.plant, self.time)
+                                              * dry_friction_level(self.plant, self.data.qvel))
 
     def frame_pose(self, name: str) -> tuple[FloatArray, FloatArray]:
         """Position (3,) m and rotation (3, 3) of a body frame in the base frame."""
@@ -189,18 +193,25 @@ class MujocoPlant:
     def step(self, tau_m: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Advance one physics step (1 ms) under command τ_m (N·m) and the applied wrenches.
 
-        Returns, for the state at the start of the step: the drive torque (N·m, the noise-free
-        measured effort), the friction torque the plant applied (N·m, τ_f slot, stiction
-        included) and the joint acceleration (rad/s²). The step is split (mj_step2 then
-        mj_step1) so that between steps poses and velocities describe the current state.
+        Returns, for the state and plant clock at the start of the step: the drive torque (N·m,
+        the noise-free measured effort, offset drift included), the friction torque the plant
+        applied (N·m, τ_f slot, drift and stiction included) and the joint acceleration (rad/s²).
+        The step is split (mj_step2 then mj_step1) so that between steps poses and velocities
+        describe the current state.
         """
         plant, data = self.plant, self.data
-        drive = actuator_torque(plant, data.qpos, tau_m)
-        smooth = plant.viscous * data.qvel if plant.dry_friction else friction_torque(plant, data.qvel)
+        drive = actuator_torque(plant, data.qpos, tau_m) + torque_offset_drift(plant, self.time)
+        smooth = friction_drift_factor(plant, self.time) * (
+            plant.viscous * data.qvel if plant.dry_friction else friction_torque(plant, data.qvel))
         data.qfrc_applied[:] = drive - smooth
         mujoco.mj_step2(self.model, data)
-        # The only constraints are dry friction, so qfrc_constraint is minus its torque.
-        friction, qacc = smooth - data.qfrc_constraint, data.qacc.copy()
+        # The only constraints are dry friction; the torque they applied is what moved q̈ off the
+        # unconstrained q̈_smooth: M (q̈ − q̈_smooth). That is −qfrc_constraint at solver convergence,
+        # and stays exact when the solver stops at its tolerance (~1e-5 N·m off under stiction).
+        constraint = np.zeros(self.model.nv)
+        mujoco.mj_mulM(self.model, data, constraint, data.qacc - data.qacc_smooth)
+        friction, qacc = smooth - constraint, data.qacc.copy()
+        self._steps += 1
         self._update_dry_friction()
         mujoco.mj_step1(self.model, data)
         return drive, friction, qacc

@@ -11,10 +11,17 @@ A plant file is YAML; every key is optional and a missing key means "as the URDF
       static: [...]                 # stribeck: breakaway level, N·m
       stribeck_velocity: [...]      # stribeck: rad/s
       viscous: [...]                # any model: N·m·s/rad
+    friction_drift: {relative_amplitude: 0.15, time_constant_s: 300}   # warm-up: τ_f × (1 + a·e^{−t/τ})
     armature: [...]                 # rotor inertia reflected to the joint, kg·m²
+    link_inertia:                   # CAD errors of the moving links (child links of the simulated joints)
+      <link>: {mass_scale: 1.1, com_shift: [x, y, z] m (link frame), inertia_scale: s | [s1, s2, s3]}
+      # or generated, deterministic for the seed:
+      # {seed: int, mass_rel: 0.15, com_m: 0.02, inertia_rel: 0.3}
+    tool: {urdf_tool: present | absent, extra: {mass: kg, com: [x, y, z] m, inertia: [6] kg·m²}}
     payload: {mass: kg, com: [x, y, z] m, inertia: [ixx, iyy, izz, ixy, ixz, iyz] kg·m²}
     drive_gain: [...]               # the joint produces drive_gain × commanded torque
     torque_offset: [...]            # N·m added by the drive
+    torque_offset_drift: {amplitude: [...] N·m, period_s: 120}        # amplitude·sin(2π t / period)
     position_ripple: {amplitude: [...] N·m, cycles_per_rev: [...]}   # amplitude·sin(cycles·q)
     joint_offset: [...]             # rad, encoder zero error: the encoder reads q + joint_offset
     noise: {torque_std: N·m, torque_std_per_rad_s: N·m·s/rad, encoder_counts_per_rev: int}
@@ -23,11 +30,30 @@ A plant file is YAML; every key is optional and a missing key means "as the URDF
 Per-joint values are lists of n numbers in joint order; the noise standard deviations may also
 be a single number for every joint. Dynamics of the plant (joint j):
 
-    M q̈ + C q̇ + g + τ_f(q̇) = drive_gain ⊙ τ_m + torque_offset + ripple(q) + τ_ext
+    M q̈ + C q̇ + g + φ(t) τ_f(q̇) = drive_gain ⊙ τ_m + torque_offset + d(t) + ripple(q) + τ_ext
 
-with M including armature and payload, all evaluated at the true q. A joint offset is a sensor
-effect only: the recorded (and controlled) position is ``q + joint_offset`` (then quantised), so a
-model evaluated at the recorded position misses ``g(q) − g(q + δ) ≈ −∂g/∂q δ``.
+with M, C, g those of the plant's true rigid body (``true_model.true_urdf``: the URDF with the
+``link_inertia`` errors, the ``tool`` mismatch and the payload), M also holding the armature, all
+evaluated at the true q and the plant clock t (s since power-on, ``MujocoPlant.time``).
+
+``link_inertia``: per link, the mass is multiplied by ``mass_scale``, the centre of mass moves by
+``com_shift`` and the principal moments of the rotational inertia about the centre of mass (in
+ascending order; a number scales all three) are multiplied by ``inertia_scale``; they must still
+obey the triangle inequality. The generated form draws per link (in joint order) a mass scale
+1 + U(−mass_rel, mass_rel), a shift uniform in the ball of radius com_m, and scales the three
+second moments of the mass distribution about the principal axes (``∫x² dm`` …) by 1 + U(−inertia_rel,
+inertia_rel): each principal moment then changes by a factor within 1 ± inertia_rel and the
+inertia stays physically valid (positive, triangle inequality) for inertia_rel < 1.
+``tool``: ``urdf_tool: absent`` means the robot does not carry the links the URDF fixes after the
+flange (the Franka Hand and its fingers): they keep their frames but lose their mass; ``extra``
+is a rigid tool welded to the flange that the URDF lacks. Unlike the ``payload`` (a load the
+ground truth counts as external torque) the tool is part of the robot: no τ_ext, no wrist F/T.
+``friction_drift``: the friction torque (all of φ1, coulomb, static, viscous) is multiplied by
+``φ(t) = 1 + relative_amplitude·e^{−t/time_constant_s}``: cold joints have more friction (grease
+viscosity) and reach the file's values once warm. ``torque_offset_drift`` adds
+``d(t) = amplitude·sin(2π t / period_s)`` to the drive torque like ``torque_offset``.
+A joint offset is a sensor effect only: the recorded (and controlled) position is ``q + joint_offset``
+(then quantised), so a model evaluated at the recorded position misses ``g(q) − g(q + δ) ≈ −∂g/∂q δ``.
 Bags never carry the plant file.
 """
 from __future__ import annotations
@@ -36,6 +62,7 @@ import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass
+from types import MappingProxyType
 from pathlib import Path
 from typing import Any, cast
 
@@ -59,8 +86,11 @@ _FRICTION_PARAMETERS = {
 }
 _REQUIRED = {"gaz_sigmoid": ("phi1", "phi2", "phi3"), "coulomb_viscous": ("coulomb",),
              "stribeck": ("coulomb", "static", "stribeck_velocity")}
-_TOP_KEYS = ("friction", "armature", "payload", "drive_gain", "torque_offset", "position_ripple",
-             "joint_offset", "noise", "control_rate_hz")
+_TOP_KEYS = ("friction", "friction_drift", "armature", "link_inertia", "tool", "payload", "drive_gain",
+             "torque_offset", "torque_offset_drift", "position_ripple", "joint_offset", "noise",
+             "control_rate_hz")
+_LINK_ERROR_KEYS = ("mass_scale", "com_shift", "inertia_scale")
+_LINK_DRAW_KEYS = ("seed", "mass_rel", "com_m", "inertia_rel")
 
 
 def _frozen(values: Any) -> FloatArray:
@@ -70,9 +100,36 @@ def _frozen(values: Any) -> FloatArray:
     return arr
 
 
+@dataclass(frozen=True)
+class LinkError:
+    """CAD error of one link: mass × ``mass_scale``, centre of mass + ``com_shift`` (3,) m in the
+    link frame, principal moments about the centre of mass (ascending) × ``inertia_scale`` (3,)."""
+
+    mass_scale: float = 1.0
+    com_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    inertia_scale: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class LinkErrorDraw:
+    """The generated form of ``link_inertia``: bounds of random link errors and the seed that draws
+    them (``true_model.link_errors`` draws them against the URDF)."""
+
+    seed: int
+    mass_rel: float = 0.0
+    com_m: float = 0.0      # m
+    inertia_rel: float = 0.0
+
+
 @dataclass(frozen=True, eq=False)
 class PlantSpec:
-    """A parsed plant file for an n-joint arm; arrays are (n,) and read-only."""
+    """A parsed plant file for an n-joint arm; arrays are (n,) and read-only.
+
+    link_inertia: per-link errors (read-only mapping link → LinkError), their generated form, or None;
+    tool_absent: the URDF's links after the flange are not carried; tool: an extra rigid tool at
+    the flange; friction_drift: relative amplitude, friction_drift_time_constant: s;
+    offset_drift_amplitude: (n,) N·m, offset_drift_period: s; source: the file, for error messages.
+    """
 
     n: int
     friction_model: str
@@ -87,13 +144,21 @@ class PlantSpec:
     payload: Payload | None
     drive_gain: FloatArray
     torque_offset: FloatArray
+    offset_drift_amplitude: FloatArray
     ripple_amplitude: FloatArray
     ripple_cycles: FloatArray
     joint_offset: FloatArray
     torque_std: FloatArray
     torque_std_per_rad_s: FloatArray
     encoder_counts_per_rev: int | None
+    link_inertia: Mapping[str, LinkError] | LinkErrorDraw | None = None
+    tool_absent: bool = False
+    tool: Payload | None = None
+    friction_drift: float = 0.0
+    friction_drift_time_constant: float = math.inf
+    offset_drift_period: float = math.inf
     control_rate_hz: float = 1000.0
+    source: str = "plant"
 
     @property
     def encoder_resolution(self) -> float:
@@ -193,6 +258,11 @@ class _Parser:
                 or float(rate) not in CONTROL_RATES_HZ):
             raise self.fail("control_rate_hz", f"must be one of {list(CONTROL_RATES_HZ)} Hz "
                                                f"(the physics runs at 1 kHz), got {rate!r}")
+        tool = self.mapping(data.get("tool") or {}, "tool", ("urdf_tool", "extra"))
+        if tool.get("urdf_tool", "present") not in ("present", "absent"):
+            raise self.fail("tool.urdf_tool", f"must be present or absent, got {tool['urdf_tool']!r}")
+        drift = self.complete(data, "friction_drift", ("relative_amplitude", "time_constant_s"))
+        offset_drift = self.complete(data, "torque_offset_drift", ("amplitude", "period_s"))
 
         def get(section: Mapping[str, Any], key: str, label: str, default: FloatArray,
                 **kw: Any) -> FloatArray:
@@ -204,9 +274,10 @@ class _Parser:
             friction_model=friction.pop("model"),
             **{k: _frozen(v) for k, v in friction.items()},
             armature=get(data, "armature", "armature", zeros, minimum=0.0),
-            payload=self.payload(data["payload"]) if data.get("payload") is not None else None,
+            payload=self.rigid_body(data["payload"], "payload") if data.get("payload") is not None else None,
             drive_gain=get(data, "drive_gain", "drive_gain", ones, positive=True),
             torque_offset=get(data, "torque_offset", "torque_offset", zeros),
+            offset_drift_amplitude=get(offset_drift, "amplitude", "torque_offset_drift.amplitude", zeros),
             ripple_amplitude=get(ripple, "amplitude", "position_ripple.amplitude", zeros),
             ripple_cycles=get(ripple, "cycles_per_rev", "position_ripple.cycles_per_rev", zeros,
                               minimum=0.0),
@@ -216,8 +287,72 @@ class _Parser:
             torque_std_per_rad_s=get(noise, "torque_std_per_rad_s", "noise.torque_std_per_rad_s",
                                      zeros, minimum=0.0, scalar_ok=True),
             encoder_counts_per_rev=counts,
+            link_inertia=self.link_inertia(data.get("link_inertia")),
+            tool_absent=tool.get("urdf_tool") == "absent",
+            tool=self.rigid_body(tool["extra"], "tool.extra") if tool.get("extra") is not None else None,
+            friction_drift=self.number(drift["relative_amplitude"], "friction_drift.relative_amplitude",
+                                       minimum=0.0) if drift else 0.0,
+            friction_drift_time_constant=self.number(drift["time_constant_s"], "friction_drift.time_constant_s",
+                                                     positive=True) if drift else math.inf,
+            offset_drift_period=self.number(offset_drift["period_s"], "torque_offset_drift.period_s",
+                                            positive=True) if offset_drift else math.inf,
             control_rate_hz=float(rate),
+            source=self.where,
         )
+
+    def number(self, value: Any, key: str, minimum: float | None = None, positive: bool = False,
+               below: float | None = None) -> float:
+        """One finite number, optionally ≥ minimum, > 0 or < below."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise self.fail(key, f"must be a finite number, got {value!r}")
+        if positive and value <= 0.0:
+            raise self.fail(key, f"must be > 0, got {value!r}")
+        if minimum is not None and value < minimum:
+            raise self.fail(key, f"must be >= {minimum}, got {value!r}")
+        if below is not None and value >= below:
+            raise self.fail(key, f"must be < {below}, got {value!r}")
+        return float(value)
+
+    def complete(self, data: Mapping[str, Any], key: str, keys: tuple[str, str]) -> Mapping[str, Any]:
+        """The section ``key`` (empty when absent); when given it must have every key of ``keys``."""
+        section = self.mapping(data.get(key) or {}, key, keys)
+        for name in keys:
+            if section and section.get(name) is None:
+                raise self.fail(f"{key}.{name}", f"is required (the section takes {list(keys)})")
+        return section
+
+    def link_inertia(self, section: Any) -> Mapping[str, LinkError] | LinkErrorDraw | None:
+        """Per-link errors ``{link: {mass_scale, com_shift, inertia_scale}}`` or the generated form
+        ``{seed, mass_rel, com_m, inertia_rel}``; link names are checked against the URDF later."""
+        if section is None:
+            return None
+        if not isinstance(section, Mapping):
+            raise self.fail("link_inertia", f"must be a mapping {{link: {{{', '.join(_LINK_ERROR_KEYS)}}}}} "
+                                            f"or {{{', '.join(_LINK_DRAW_KEYS)}}}, got {section!r}")
+        if "seed" in section:
+            section = self.mapping(section, "link_inertia", _LINK_DRAW_KEYS)
+            seed = section["seed"]
+            if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+                raise self.fail("link_inertia.seed", f"must be an integer >= 0, got {seed!r}")
+            return LinkErrorDraw(
+                seed, self.number(section.get("mass_rel", 0.0), "link_inertia.mass_rel", minimum=0.0, below=1.0),
+                self.number(section.get("com_m", 0.0), "link_inertia.com_m", minimum=0.0),
+                self.number(section.get("inertia_rel", 0.0), "link_inertia.inertia_rel", minimum=0.0, below=1.0))
+        errors = {}
+        for link, entry in section.items():
+            key = f"link_inertia.{link}"
+            entry = self.mapping(entry, key, _LINK_ERROR_KEYS)
+            scale = entry.get("inertia_scale", 1.0)
+            if isinstance(scale, (int, float)) and not isinstance(scale, bool):
+                scale = [scale] * 3
+            scales = self._fixed(scale, 3, f"{key}.inertia_scale")
+            if min(scales) <= 0.0:
+                raise self.fail(f"{key}.inertia_scale", f"must be > 0, got {entry['inertia_scale']!r}")
+            errors[str(link)] = LinkError(
+                self.number(entry.get("mass_scale", 1.0), f"{key}.mass_scale", positive=True),
+                cast(tuple[float, float, float], self._fixed(entry.get("com_shift", [0.0] * 3), 3, f"{key}.com_shift")),
+                cast(tuple[float, float, float], scales))
+        return MappingProxyType(errors)
 
     def friction(self, section: Any) -> dict[str, Any]:
         """Friction parameters of the chosen model; unused parameters are an error."""
@@ -248,20 +383,20 @@ class _Parser:
         params["model"] = model
         return params
 
-    def payload(self, section: Any) -> Payload:
-        """A rigid payload; its inertia must be physically possible (PSD, triangle inequality)."""
-        section = self.mapping(section, "payload", ("mass", "com", "inertia"))
+    def rigid_body(self, section: Any, key: str) -> Payload:
+        """A rigid payload or tool; its inertia must be physically possible (PSD, triangle inequality)."""
+        section = self.mapping(section, key, ("mass", "com", "inertia"))
         mass = section.get("mass")
         if (isinstance(mass, bool) or not isinstance(mass, (int, float)) or not math.isfinite(mass)
                 or mass <= 0):
-            raise self.fail("payload.mass", f"must be a number > 0 kg, got {mass!r}")
-        com = self._fixed(section.get("com", [0.0, 0.0, 0.0]), 3, "payload.com")
-        inertia = self._fixed(section.get("inertia", [0.0] * 6), 6, "payload.inertia")
+            raise self.fail(f"{key}.mass", f"must be a number > 0 kg, got {mass!r}")
+        com = self._fixed(section.get("com", [0.0, 0.0, 0.0]), 3, f"{key}.com")
+        inertia = self._fixed(section.get("inertia", [0.0] * 6), 6, f"{key}.inertia")
         ixx, iyy, izz, ixy, ixz, iyz = inertia
         principal = np.linalg.eigvalsh(np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]]))
         tol = 1e-12 + 1e-9 * float(np.abs(principal).max())
         if principal.min() < -tol or 2.0 * principal.max() > principal.sum() + tol:
-            raise self.fail("payload.inertia", f"is not a physical inertia (needs positive "
+            raise self.fail(f"{key}.inertia", f"is not a physical inertia (needs positive "
                                                f"semi-definite, triangle inequality), got {list(inertia)}")
         return Payload(float(mass), cast(tuple[float, float, float], com),
                        cast(tuple[float, float, float, float, float, float], inertia))
@@ -299,7 +434,12 @@ class OracleResidual:
 
     ``predict(q̇)`` (n,) rad/s gives ``(τ_f(q̇), variance)``, (n,) N·m and (n,) N²·m²: the
     ``ResidualPredictor`` of ``kvark_ros.core.observers.base``, passed to ``make_observer`` and
-    ``Estimator.from_config`` as ``oracle``.
+    ``Estimator.from_config`` as ``oracle``. τ_f is the warm friction (``friction_drift`` factor 1).
+
+    It covers friction only. The rigid-body part of the plant (``link_inertia``, ``tool``) belongs
+    in the oracle's robot model: build it on ``kvark_ros.sim.true_model.true_urdf(setup, plant)``.
+    What is neither a function of q̇ nor in a URDF stays in the oracle's error: drive gain,
+    armature, torque offset and ripple, the friction and offset drifts, the joint offset.
     """
 
     def __init__(self, plant: PlantSpec, n: int) -> None:
@@ -324,6 +464,18 @@ def dry_friction_level(spec: PlantSpec, qd: npt.ArrayLike) -> FloatArray:
     return np.zeros(qd.shape)
 
 
+def friction_drift_factor(spec: PlantSpec, t: float) -> float:
+    """Factor φ(t) on the friction torque at plant time t s since power-on: ``1 + a·e^{−t/τ}``
+    (``friction_drift``): 1 + a cold, 1 once warm (t ≫ τ) and always 1 without a drift."""
+    return 1.0 + spec.friction_drift * math.exp(-t / spec.friction_drift_time_constant)
+
+
+def torque_offset_drift(spec: PlantSpec, t: float) -> FloatArray:
+    """Drifting drive-torque offset ``d(t) = amplitude·sin(2π t / period_s)``, N·m, at plant time t s
+    (``torque_offset_drift``; zeros without one)."""
+    return spec.offset_drift_amplitude * math.sin(2.0 * math.pi * t / spec.offset_drift_period)
+
+
 def ripple_torque(spec: PlantSpec, q: npt.ArrayLike) -> FloatArray:
     """Position-periodic drive torque ``amplitude · sin(cycles_per_rev · q)``, N·m."""
     return spec.ripple_amplitude * np.sin(spec.ripple_cycles * np.asarray(q, dtype=float))
@@ -332,7 +484,8 @@ def ripple_torque(spec: PlantSpec, q: npt.ArrayLike) -> FloatArray:
 def actuator_torque(spec: PlantSpec, q: npt.ArrayLike, tau_m: npt.ArrayLike) -> FloatArray:
     """Torque the drives apply for a command τ_m, N·m: ``drive_gain ⊙ τ_m + offset + ripple(q)``.
 
-    This is the noise-free "measured effort" of the simulated robot.
+    Plus ``torque_offset_drift(t)`` (added by ``MujocoPlant.step``), this is the noise-free
+    "measured effort" of the simulated robot.
     """
     return spec.drive_gain * np.asarray(tau_m, dtype=float) + spec.torque_offset + ripple_torque(spec, q)
 
@@ -342,7 +495,8 @@ def plant_effects(spec: PlantSpec, q: npt.ArrayLike, qd: npt.ArrayLike) -> Float
 
     ``M q̈ + C q̇ + g + plant_effects(q, q̇) = drive_gain ⊙ τ_m + τ_ext``, i.e.
     ``τ_f(q̇) − torque_offset − ripple(q)``. Armature and payload are inertia (inside M);
-    the drive gain multiplies τ_m and is not a function of the state.
+    the drive gain multiplies τ_m and is not a function of the state. Friction is the warm one
+    (drift factor 1) and the offset drift is left out: both depend on the plant clock.
     """
     return friction_torque(spec, qd) - spec.torque_offset - ripple_torque(spec, q)
 
@@ -354,7 +508,8 @@ def residual_torque(spec: PlantSpec, q: npt.ArrayLike, qd: npt.ArrayLike, qdd: n
     ``(1 − drive_gain) ⊙ τ_m + plant_effects(q, q̇) + armature ⊙ q̈``: what a perfect residual
     model would learn (the oracle's residual). q is the true position; a ``joint_offset`` adds
     ``g(q) − g(q + joint_offset)`` to the gap seen at the recorded position, which needs the
-    robot model and is not included here.
+    robot model and is not included here; so are link inertia and tool errors (the gap of
+    ``true_model.true_urdf`` to the URDF) and the drifts (see ``plant_effects``).
     """
     return ((1.0 - spec.drive_gain) * np.asarray(tau_m, dtype=float) + plant_effects(spec, q, qd)
             + spec.armature * np.asarray(qdd, dtype=float))

@@ -2,7 +2,10 @@
 
 Timing: physics at 1 kHz (``PHYSICS_DT``), the controller at the plant file's
 ``control_rate_hz`` (1 kHz or 500 Hz), logging at 500 Hz (``LOG_RATE_HZ``). A logged sample at
-stamp t_k holds what the controller saw at t_k and the command it sent then.
+stamp t_k holds what the controller saw at t_k and the command it sent then. The plant clock
+(s since power-on, for the friction and torque-offset drifts) reads ``start_time + t_k``:
+``run_scenario`` draws ``start_time`` per seed uniformly within the first ``SESSION_S`` after
+power-on, so that recordings of one plant meet it at different temperatures, as a real robot's do.
 
 Measured signals (what a real robot reports):
   position = true q + joint_offset (the plant's encoder zero error), quantised to the encoder
@@ -16,7 +19,9 @@ Ground truth (what only the simulator knows): the true external joint torque
 ``τ_ext = Jᵀ F_ext`` summed over every external wrench, plus, for a payload the nominal model
 lacks, ``τ_ext = −(ID_with_payload − ID_nominal)(q, q̇, q̈)``; and the wrist F/T wrench: what
 the environment and payload apply to the robot beyond the flange, at the flange origin in flange
-axes (frame_id = flange frame). Forces on links before the flange never reach that sensor.
+axes (frame_id = flange frame). Forces on links before the flange never reach that sensor. The
+plant file's ``tool`` is part of the robot: neither τ_ext nor the F/T reading (tool-compensated)
+includes it.
 In the bag, τ_ext is the effort field of /ground_truth/external_joint_torque (position and
 velocity fields zero); stamps start at 0 s.
 """
@@ -48,6 +53,7 @@ LOG_RATE_HZ = 500.0
 _STEPS_PER_LOG = int(round(1.0 / (LOG_RATE_HZ * PHYSICS_DT)))
 _NS_PER_LOG = int(round(1e9 / LOG_RATE_HZ))
 _BLOCK = 1000                                  # physics steps per noise draw / progress update
+SESSION_S = 1800.0                             # s: recordings start within half an hour of power-on
 _GRAVITY = pin.Motion(np.array([0.0, 0.0, -9.81]), np.zeros(3))
 
 Controller = Callable[[float, FloatArray, FloatArray], FloatArray]
@@ -153,13 +159,15 @@ class SimulationOutput:
     """A simulated recording (what goes into the bag) and its ground truth.
 
     plant: the plant actually simulated (e.g. with the payload scenario's payload);
-    wall_time: s, for the whole run including trajectory optimisation.
+    wall_time: s, for the whole run including trajectory optimisation;
+    start_time: the plant clock at the first sample, s since power-on.
     """
 
     run: RecordedRun
     truth: GroundTruth
     plant: PlantSpec
     wall_time: float
+    start_time: float = 0.0
 
     @property
     def real_time_factor(self) -> float:
@@ -224,7 +232,7 @@ def payload_truth(nominal: RobotModel, loaded: RobotModel, q: FloatArray, qd: Fl
 
 def run_simulation(setup: RobotSetup, plant: PlantSpec, controller: Controller, duration: float,
                    start: FloatArray, rng: np.random.Generator, forces: Sequence[ExternalForce] = (),
-                   progress: bool | None = None, label: str = "") -> SimulationOutput:
+                   progress: bool | None = None, label: str = "", start_time: float = 0.0) -> SimulationOutput:
     """Simulate ``duration`` s from rest at ``start`` (rad) and record it (see module docstring).
 
     ``start`` is the position the encoders read at t = 0: the arm starts at ``start −
@@ -233,7 +241,7 @@ def run_simulation(setup: RobotSetup, plant: PlantSpec, controller: Controller, 
     controller(t, q_measured, q̇_measured) → τ_m runs at the plant's control rate; ``forces``
     act every physics step; ``rng`` draws the sensor noise. progress: True/False shows/hides a
     tqdm bar, None shows it on a terminal only; either way it appears only for runs that take
-    more than a second of wall time.
+    more than a second of wall time. start_time: the plant clock at t = 0, s since power-on.
     """
     wall_start = time.perf_counter()
     n, names = setup.n, setup.joint_names
@@ -245,7 +253,7 @@ def run_simulation(setup: RobotSetup, plant: PlantSpec, controller: Controller, 
     resolution = plant.encoder_resolution
     velocity_std = resolution / (np.sqrt(6.0) / LOG_RATE_HZ)
     sim = MujocoPlant(setup, plant)
-    sim.reset(np.asarray(start, dtype=float) - plant.joint_offset)
+    sim.reset(np.asarray(start, dtype=float) - plant.joint_offset, time=start_time)
     nominal = setup.nominal_model()
     wrench_truth = _WrenchTruth(nominal, sim)
 
@@ -294,7 +302,7 @@ def run_simulation(setup: RobotSetup, plant: PlantSpec, controller: Controller, 
     )
     truth = GroundTruth(rec["q"], rec["qd"], rec["qdd"], rec["tau_ext"], sensor[:, :3].copy(),
                         sensor[:, 3:].copy(), rec["friction"], rec["drive"])
-    return SimulationOutput(run, truth, plant, time.perf_counter() - wall_start)
+    return SimulationOutput(run, truth, plant, time.perf_counter() - wall_start, start_time)
 
 
 def _quintic(s: float) -> float:
@@ -378,7 +386,8 @@ def run_scenario(robot: str, scenario: str, seed: int = 1, duration: float = 10.
     contact: Cartesian impedance polishing square on a table, ~15 N normal force;
     collision: plain joint-space motion with a 20-40 N, 0.2 s push on a link every ~5 s.
     plant: a PlantSpec, a plant-file path, or None for the robot's default plant file
-    (``kvark_ros/sim/plants/<robot>_default.yaml``). Deterministic for a seed.
+    (``kvark_ros/sim/plants/<robot>_default.yaml``). Deterministic for a seed, which also sets
+    the plant clock at the start (module docstring).
     """
     wall_start = time.perf_counter()
     setup = robot_setup(robot)
@@ -387,8 +396,9 @@ def run_scenario(robot: str, scenario: str, seed: int = 1, duration: float = 10.
     if not np.isfinite(duration) or duration <= 0.0:
         raise ValueError(f"duration must be > 0 s, got {duration}")
     spec = _resolve_plant(setup, plant)
-    trajectory_seed, scenario_seed, noise_seed = np.random.SeedSequence(
-        [seed, SCENARIOS.index(scenario)]).spawn(3)
+    trajectory_seed, scenario_seed, noise_seed, clock_seed = np.random.SeedSequence(
+        [seed, SCENARIOS.index(scenario)]).spawn(4)
+    start_time = float(np.random.default_rng(clock_seed).uniform(0.0, SESSION_S))
     scenario_rng = np.random.default_rng(scenario_seed)
     nominal = setup.nominal_model()
     limits = ExcitationLimits.for_robot(setup)
@@ -410,7 +420,7 @@ def run_scenario(robot: str, scenario: str, seed: int = 1, duration: float = 10.
         controller, table = _polishing(setup, nominal, start)
         forces.append(table)
     output = run_simulation(setup, spec, controller, duration, start, np.random.default_rng(noise_seed),
-                            forces, progress, label=f"{robot} {scenario}")
+                            forces, progress, label=f"{robot} {scenario}", start_time=start_time)
     return replace(output, wall_time=time.perf_counter() - wall_start)
 
 

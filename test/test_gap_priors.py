@@ -71,3 +71,15 @@ def test_parameters_at_a_prior_bound_are_warnings(config) -> None:
     assert names[1] in warnings[0] and "0.900" in warnings[0] and names[3] not in " ".join(warnings)
     assert names[5] in warnings[1] and "-1.00°" in warnings[1]
     assert plausibility_warnings([gain], [np.array([0.05, -0.05])], priors, names) == []
+
+
+def test_look_alikes_reports_collinear_effects_only() -> None:
+    from kvark_ros.gap.plausibility import look_alikes
+    rng = np.random.default_rng(0)
+    t, n = 400, 3
+    base = rng.standard_normal((t, n, 2))
+    scaled = np.concatenate([base @ np.array([[2.0], [-1.0]]), rng.standard_normal((t, n, 1))], axis=2)  # spans a mix
+    unrelated = rng.standard_normal((t, n, 2))
+    pairs = look_alikes({"a": base}, {"b": scaled, "c": unrelated, "a": base}, np.ones(n))
+    assert [(p["accepted"], p["look_alike"]) for p in pairs] == [("a", "b")]    # itself and random columns are not
+    assert pairs[0]["cosine"] == pytest.approx(1.0, abs=1e-9)      # 2 a₀ − a₁ lies in both spans exactly

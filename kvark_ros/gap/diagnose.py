@@ -58,7 +58,14 @@ from kvark_ros.gap.effects import (
     variants,
 )
 from kvark_ros.gap.diagnosis_report import Diagnosis, plot, report
-from kvark_ros.gap.plausibility import RAW_QDD_WINDOW, flange_change, plausibility_warnings, raw_gap, theta_split
+from kvark_ros.gap.plausibility import (
+    RAW_QDD_WINDOW,
+    flange_change,
+    look_alikes,
+    plausibility_warnings,
+    raw_gap,
+    theta_split,
+)
 from kvark_ros.io.alignment import load_recordings
 
 HOLDOUT = 0.3            # share of every recording (its end) held out
@@ -472,6 +479,9 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         "priors": {"max_gain_error": priors.max_gain_error, "max_joint_offset_deg": float(np.degrees(
             priors.max_joint_offset)), "flange_mass": priors.flange_mass},
         "warnings": plausibility_warnings(terms, theta_split(terms, theta), priors, robot.joint_names),
+        "look_alikes": look_alikes({t.name: fitter.design(t)[0] for t in terms},
+                                   {name: fitter.design(Term(name, tuple(range(n)), variants(name)[0]))[0]
+                                    for name in effects}, fitter.w),
         "holdout": holdout, "samples": {"train": len(train), "held_out": len(held)},
         "seconds": round(time.perf_counter() - started, 1),
     }

@@ -43,6 +43,12 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
               f"±{r['priors']['max_joint_offset_deg']:.1f}°, the flange link ({r['priors']['flange_mass']:.3f} kg in "
               "the URDF) and the other links physically consistent.", "", "## Warnings", ""]
     lines += [f"- {warning}" for warning in r["warnings"]] or ["None: no parameter sits at a bound of its prior."]
+    lines += ["", "## Look-alikes", "",
+              "Effects whose regressors are nearly collinear on this motion (cosine of the smallest principal angle "
+              "≥ 0.95): the data alone do not tell them apart; the accepted one won on BIC, held-out gap and priors.",
+              ""]
+    lines += [f"- {pair['accepted']} ~ {pair['look_alike']} (cosine {pair['cosine']:.3f})"
+              for pair in r.get("look_alikes", [])] or ["None."]
     lines += ["", "## Effects found", ""]
     if not r["effects"]:
         lines.append("None: the nominal model explains the data to within the noise.")

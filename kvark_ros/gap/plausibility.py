@@ -92,3 +92,32 @@ def raw_gap(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: flo
     return {"filter": f"raw τ_m, q̈ from a {RAW_QDD_WINDOW * 1e3:.0f} ms Savitzky-Golay derivative of q̇",
             "before": before_rmse.tolist(), "after": after_rmse.tolist(),
             "before_mean": float(before_rmse.mean()), "after_mean": float(after_rmse.mean())}
+
+
+COLLINEAR_COSINE = 0.95  # largest canonical correlation above which two effects look alike on the data
+
+
+def look_alikes(accepted: dict[str, np.ndarray], others: dict[str, np.ndarray], weights: np.ndarray) -> list[dict]:
+    """Pairs of effects the data hardly tell apart: for each accepted effect's regressor block (T, n, p) and every
+    other effect of the library (all joints), the cosine of the smallest principal angle between their weighted
+    column spaces (1: some combination of one is exactly one of the other); pairs at or above ``COLLINEAR_COSINE``.
+
+    The selection kept the accepted one by BIC, the held-out gap and the priors; the pair says which physical
+    reading the data alone could not exclude (a drive gain on a gravity-loaded joint looks like a payload)."""
+    from scipy.linalg import subspace_angles
+
+    def columns(block: np.ndarray) -> np.ndarray:
+        a = (block * weights[None, :, None]).reshape(-1, block.shape[2])
+        return a[:, np.linalg.norm(a, axis=0) > 1e-12]
+
+    pairs = []
+    for name, block in accepted.items():
+        a = columns(block)
+        for other, other_block in others.items():
+            b = columns(other_block)
+            if other == name or a.shape[1] == 0 or b.shape[1] == 0:
+                continue
+            cosine = float(np.cos(np.min(subspace_angles(a, b))))
+            if cosine >= COLLINEAR_COSINE:
+                pairs.append({"accepted": name, "look_alike": other, "cosine": round(cosine, 4)})
+    return pairs

@@ -98,12 +98,16 @@ class Estimator:
 
         ``urdf`` overrides ``config.urdf`` (the node passes the ``robot_description`` string);
         ``oracle`` is the true residual (the simulator's ``OracleResidual``), for the ``oracle``
-        observer only.
+        observer only, whose robot model is built on the oracle's ``urdf`` (the plant's true rigid body)
+        when it has one.
         """
+        name = observer or config.observer
+        if name == "oracle" and urdf is None:
+            urdf = getattr(oracle, "urdf", None)
         trained = trained or load_model(config.model_dir, config.joint_names,
                                         urdf_sha256(config.urdf) if urdf is None else None)
         robot = RobotModel.from_config(config, model_augmentation(config, trained), urdf)
-        return cls(config, robot, make_observer(observer or config.observer, trained, config.filter, oracle), trained)
+        return cls(config, robot, make_observer(name, trained, config.filter, oracle), trained)
 
     def configure(self, config: EstimatorConfig) -> None:
         """Apply a config whose run-time keys changed (config_schema.KEYS ``runtime``), from the next sample.

@@ -436,14 +436,16 @@ class OracleResidual:
     ``ResidualPredictor`` of ``kvark_ros.core.observers.base``, passed to ``make_observer`` and
     ``Estimator.from_config`` as ``oracle``. τ_f is the warm friction (``friction_drift`` factor 1).
 
-    It covers friction only. The rigid-body part of the plant (``link_inertia``, ``tool``) belongs
-    in the oracle's robot model: build it on ``kvark_ros.sim.true_model.true_urdf(setup, plant)``.
-    What is neither a function of q̇ nor in a URDF stays in the oracle's error: drive gain,
-    armature, torque offset and ripple, the friction and offset drifts, the joint offset.
+    It covers friction only. The rigid-body part of the plant (``link_inertia``, ``tool``) is ``urdf``:
+    the plant's true rigid body (``kvark_ros.sim.true_model.true_urdf``), which ``Estimator.from_config``
+    builds the oracle's robot model on (None: the nominal URDF). What is neither a function of q̇ nor in
+    a URDF stays in the oracle's error: drive gain, armature, torque offset and ripple, the friction and
+    offset drifts, the joint offset, the torque a sticking joint holds.
     """
 
-    def __init__(self, plant: PlantSpec, n: int) -> None:
+    def __init__(self, plant: PlantSpec, n: int, urdf: str | None = None) -> None:
         self.plant = plant
+        self.urdf = urdf
         self._variance = np.full(n, ORACLE_VARIANCE)
 
     @property

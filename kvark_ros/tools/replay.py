@@ -217,10 +217,15 @@ def run(args: argparse.Namespace) -> int:
     oracle = None
     if args.plant:
         from kvark_ros.sim.plant import OracleResidual, load_plant
-        oracle = OracleResidual(load_plant(args.plant, config.n_joints), config.n_joints)
+        from kvark_ros.sim.robots import ROBOTS, robot_setup
+        from kvark_ros.sim.true_model import true_urdf
+        spec = load_plant(args.plant, config.n_joints)
+        # the plant's true rigid body for the oracle, when the config is one of the simulator's robots
+        urdf = true_urdf(robot_setup(config.robot), spec) if config.robot in ROBOTS else None
+        oracle = OracleResidual(spec, config.n_joints, urdf=urdf)
     observers = parse_observers(args.observers, oracle is not None and trained.augmentation is None)
     if oracle is not None and trained.augmentation is not None and args.observers == "all":
-        print("[replay] oracle skipped: it adds the plant's true friction to the nominal model, and this "
+        print("[replay] oracle skipped: it runs on the plant's own rigid body and friction, and this "
               "model is augmented", flush=True)
     replay(config, trained, Path(args.bag), Path(args.out), observers,
            Path(args.reference_bag) if args.reference_bag else None, oracle, write_bag=not args.no_bag,

@@ -12,7 +12,7 @@ gpadkf                  sparse-GP residual in an adaptive disturbance KF (hetero
 nnadkf                  MLP residual mean, static covariances (the A1 filter)
 momentum, kfmo,         the second paper's residual-free momentum observers
 sh_akfmo, vbkfmo_q, eso
-oracle                  the K-VARK filter given the true residual (``oracle``: the simulator's
+oracle                  the K-VARK filter given the true residual and rigid body (``oracle``: the simulator's
                         ``kvark_ros.sim.plant.OracleResidual``)
 ======================  ===================================================================
 """
@@ -71,7 +71,7 @@ def make_observer(name: str, trained: "TrainedModel", settings: FilterSettings,
         if oracle is None:
             raise ObserverError("observer 'oracle' needs the simulator's plant file (pass --plant FILE)")
         if trained.augmentation is not None:
-            raise ObserverError("observer 'oracle' adds the plant's true friction to the nominal model, but this "
+            raise ObserverError("observer 'oracle' runs on the plant's own rigid body and friction, but this "
                                 "model is augmented (kvark diagnose); use a model trained without augmentation")
         return _kvark("kvark", oracle, trained.tuning, trained, settings, "oracle")
     raise ObserverError(f"unknown observer '{name}'; known: {', '.join(OBSERVER_NAMES)}")

@@ -79,10 +79,12 @@ def make_node(ros, model_dir):
 
 @pytest.fixture(scope="module")
 def model_dir(tmp_path_factory, panda):
-    """A small model: train_model (no baselines) on a 1 s simulated excitation run."""
+    """A small model: train_model (no baselines) on a 1 s simulated excitation run; every joint's residual takes
+    q̇ and the gravity torque g(q), so the node's path of the pose inputs is the one under test."""
     from kvark_ros.sim.scenarios import simulate
     run = simulate("panda", "excitation", seed=1, duration=1.0, progress=False)
-    trained = train_model(panda, "panda", [estimator_inputs(run)], baselines=False, log=lambda _line: None)
+    trained = train_model(panda, "panda", [estimator_inputs(run)], baselines=False, log=lambda _line: None,
+                          residual_inputs="qd_g")
     directory = tmp_path_factory.mktemp("model") / "panda"
     save_model(directory, trained)
     return directory

@@ -14,9 +14,10 @@ pytest.importorskip("mujoco")
 from kvark_ros.core.config import load_config  # noqa: E402
 from kvark_ros.core.robot_model import RobotModel  # noqa: E402
 from kvark_ros.gap import diagnose as gap_cli  # noqa: E402
-from kvark_ros.gap.effects import Priors
+from kvark_ros.core.augmentation import load_augmentation, parse_augmentation  # noqa: E402
 from kvark_ros.gap.diagnose import diagnose, write_outputs  # noqa: E402
-from kvark_ros.gap.effects import EFFECT_NAMES, augmentation_gap  # noqa: E402
+from kvark_ros.gap.diagnosis_report import augmentation  # noqa: E402
+from kvark_ros.gap.effects import EFFECT_NAMES, Priors, augmentation_gap  # noqa: E402
 from kvark_ros.io import write_run  # noqa: E402
 from kvark_ros.io.alignment import estimator_inputs  # noqa: E402
 from kvark_ros.sim.scenarios import simulate  # noqa: E402
@@ -75,9 +76,9 @@ PLANTS = {
 }
 
 
-def _robot(name: str) -> RobotModel:
+def _robot(name: str, base=None) -> RobotModel:
     c = load_config(ROOT / "config" / f"{name}.yaml")
-    return RobotModel(c.urdf, c.joint_names, c.ee_frame, c.flange_frame)
+    return RobotModel(c.urdf, c.joint_names, c.ee_frame, c.flange_frame, augmentation=base)
 
 
 @pytest.fixture(scope="module")
@@ -302,3 +303,28 @@ def test_cli_writes_outputs_from_a_bag(runs, robots, tmp_path_factory):
     after = np.sqrt(np.mean(np.square(h.gap - predicted), axis=0))
     np.testing.assert_allclose(after, diag.result["gap_after"]["joint_rmse"], rtol=1e-6, atol=1e-9)
     _ = write_outputs  # public for programmatic use
+
+
+def test_against_a_corrected_model_only_the_new_effect_is_named(runs, robots, tmp_path):
+    """A robot whose torque offsets are already known (the base augmentation) gets a payload: diagnosed against
+    the corrected model, the payload is named alone, and the written augmentation holds both."""
+    names = load_config(ROOT / "config" / "panda.yaml").joint_names
+    joints = [j for j, v in enumerate(PANDA_OFFSET) if v]
+    base_path = tmp_path / "base.yaml"
+    base_path.write_text(yaml.safe_dump({"joint_names": list(names), "effects": [
+        {"name": "torque_offset", "joint_indices": joints, "theta": [PANDA_OFFSET[j] for j in joints]}]}))
+    corrected = _robot("panda", load_augmentation(base_path, names))
+    run = runs[("panda", "payload+torque_offset")]
+    diag = diagnose(corrected, [estimator_inputs(run)], log=lambda _: None)
+    assert [e["name"] for e in diag.result["effects"]] == ["payload"]
+    assert abs(_effect(diag, "payload")["parameters"]["mass"] - PAYLOAD["mass"]) <= 0.1 * PAYLOAD["mass"]
+    assert diag.result["against"] == str(base_path)
+    document = augmentation(diag, corrected, "panda")
+    assert [e["name"] for e in document["effects"]] == ["torque_offset", "payload"]
+    combined = _robot("panda", parse_augmentation(yaml.safe_dump(document), names))
+    assert combined.augmentation.payload is not None
+    np.testing.assert_allclose(combined.augmentation.torque_effects[0].theta[:, 0], [PANDA_OFFSET[j] for j in joints])
+    # what is left is as small as when the nominal model is diagnosed for both effects at once (20 % margin: the
+    # two fits differ only in how the offsets were obtained)
+    both = diagnose(robots["panda"], [estimator_inputs(run)], log=lambda _: None)
+    assert diag.result["gap_after"]["joint_rmse_mean"] <= 1.2 * both.result["gap_after"]["joint_rmse_mean"]

@@ -83,3 +83,22 @@ def test_look_alikes_reports_collinear_effects_only() -> None:
     pairs = look_alikes({"a": base}, {"b": scaled, "c": unrelated, "a": base}, np.ones(n))
     assert [(p["accepted"], p["look_alike"]) for p in pairs] == [("a", "b")]    # itself and random columns are not
     assert pairs[0]["cosine"] == pytest.approx(1.0, abs=1e-9)      # 2 a₀ − a₁ lies in both spans exactly
+
+
+def test_an_effect_listed_again_adds_to_the_earlier_entry(config) -> None:
+    """`kvark diagnose --against` writes the base effects, then the new ones: every effect is linear in θ."""
+    names = list(config.joint_names)
+    payload = np.arange(1.0, 11.0) * 0.01
+    text = yaml.safe_dump({"joint_names": names, "effects": [
+        {"name": "payload", "joint_indices": list(range(7)), "theta": payload.tolist()},
+        {"name": "armature", "joint_indices": [0, 1], "theta": [0.1, 0.2]},
+        {"name": "torque_offset", "joint_indices": [2], "theta": [0.3]},
+        {"name": "payload", "joint_indices": list(range(7)), "theta": (-0.5 * payload).tolist()},
+        {"name": "armature", "joint_indices": [1], "theta": [0.05]},
+        {"name": "torque_offset", "joint_indices": [2], "theta": [-0.1]}]})
+    parsed = parse_augmentation(text, names)
+    np.testing.assert_allclose(parsed.payload, 0.5 * payload)
+    np.testing.assert_allclose(parsed.armature[:2], [0.1, 0.25])
+    assert parsed.effect_names == ("payload", "armature", "torque_offset")
+    tau = parsed.joint_torque(np.zeros(7), np.zeros(7), np.zeros(7))
+    assert tau[2] == pytest.approx(-(0.3 - 0.1))      # torque_offset's column is −1: gap −o

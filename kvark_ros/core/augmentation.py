@@ -137,8 +137,6 @@ def parse_augmentation(text: str, joint_names: Sequence[str], source: str = "aug
             raise _fail(source, f"{where} needs name, joint_indices, theta (numbers) ({exc})") from exc
         if name not in TORQUE_EFFECTS + STRUCTURAL_EFFECTS:
             raise _fail(source, f"{where}: unknown effect {name!r}")
-        if name in effect_names:
-            raise _fail(source, f"{where}: effect {name!r} listed twice")
         if len(joints) == 0 or joints.min() < 0 or joints.max() >= n or len(set(joints.tolist())) != len(joints):
             raise _fail(source, f"{where} ({name}): joint_indices must be distinct indices in 0..{n - 1}")
         if not np.all(np.isfinite(theta)):
@@ -150,17 +148,20 @@ def parse_augmentation(text: str, joint_names: Sequence[str], source: str = "aug
             name, PARAMETERS_PER_JOINT.get(name, 0) * len(joints))
         if theta.size != size:
             raise _fail(source, f"{where} ({name}): theta has {theta.size} values, expected {size}")
-        effect_names.append(name)
+        if name not in effect_names:
+            effect_names.append(name)
+        # An effect listed again adds to the earlier entry (`kvark diagnose --against` writes the base model's
+        # effects followed by those found relative to it); every effect is linear in θ, so the sum is the total.
         if name == "payload":       # physical consistency needs the URDF: checked by the robot model
-            payload = theta
+            payload = theta if payload is None else payload + theta
         elif name == "link_inertia":
-            links = theta.reshape(n - 1, PAYLOAD_SIZE)
+            links = theta.reshape(n - 1, PAYLOAD_SIZE) + (0.0 if links is None else links)
         elif name == "armature":
-            if theta.min() < 0.0:
+            armature[joints] += theta
+            if armature.min() < 0.0:
                 raise _fail(source, f"{where} (armature): values must be ≥ 0 kg·m²")
-            armature[joints] = theta
         elif name == "joint_offset":
-            offset[joints] = theta
+            offset[joints] += theta
         else:
             k = PARAMETERS_PER_JOINT[name]
             torque_effects.append(TorqueEffect(name, joints, variant, theta.reshape(len(joints), k)))

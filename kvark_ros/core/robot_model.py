@@ -203,6 +203,10 @@ class RobotModel:
         """Joint position the model is evaluated at: the measured one minus the encoder offset."""
         return q if self._q_offset is None else q - self._q_offset
 
+    def model_position(self, q: np.ndarray) -> np.ndarray:
+        """The position (n,) rad pinocchio evaluates this model at for a measured q (the encoder offset removed)."""
+        return self._true_q(q)
+
     def set_payload(self, payload: Payload | None) -> None:
         """Attach (or with ``None`` remove) a payload at the flange; replaces any earlier one."""
         frame = self.model.frames[self.flange_frame_id]

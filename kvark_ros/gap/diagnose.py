@@ -24,19 +24,16 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
-import yaml
 from scipy.optimize import lsq_linear
 
 from kvark_ros.core.augmentation import load_augmentation
 from kvark_ros.core.config import EstimatorConfig, load_config
-from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.linalg import single_threaded_blas
 from kvark_ros.core.model_store import TrainedModel, save_model
@@ -57,7 +54,7 @@ from kvark_ros.gap.effects import (
     signals,
     variants,
 )
-from kvark_ros.gap.diagnosis_report import Diagnosis, plot, report
+from kvark_ros.gap.diagnosis_report import Diagnosis, write_outputs
 from kvark_ros.gap.plausibility import (
     RAW_QDD_WINDOW,
     flange_change,
@@ -482,6 +479,7 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         "look_alikes": look_alikes({t.name: fitter.design(t)[0] for t in terms},
                                    {name: fitter.design(Term(name, tuple(range(n)), variants(name)[0]))[0]
                                     for name in effects}, fitter.w),
+        "against": None if robot.augmentation is None else robot.augmentation.source,
         "holdout": holdout, "samples": {"train": len(train), "held_out": len(held)},
         "seconds": round(time.perf_counter() - started, 1),
     }
@@ -492,20 +490,6 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
     for warning in result["warnings"]:
         log(f"[diagnose] warning: {warning}")
     return Diagnosis(result, terms, thetas, held, r_he)
-
-
-def augmentation(diag: Diagnosis, robot: RobotModel, robot_name: str = "") -> dict:
-    """The accepted effects as a plain mapping (``augmentation.yaml``)."""
-    entries = []
-    for term, th, eff in zip(diag.terms, diag.theta, diag.result["effects"]):
-        entries.append({"name": term.name, "joint_indices": [int(j) for j in term.joints],
-                        "joints": [robot.joint_names[j] for j in term.joints],
-                        "variant": {k: float(v) for k, v in term.variant.items()},
-                        "parameters": eff["parameters"], "theta": [float(v) for v in th]})
-    return {"robot": robot_name, "joint_names": list(robot.joint_names),
-            "convention": "tau_m - tau_EL = sum over effects of design(q, qd, qdd, tau_m) @ theta "
-                          "(kvark_ros.gap.effects.augmentation_gap)",
-            "effects": entries}
 
 
 def train_on_diagnosis(config: EstimatorConfig, robot: RobotModel, segments: Sequence[EstimatorInputs], out: Path,
@@ -527,20 +511,6 @@ def train_on_diagnosis(config: EstimatorConfig, robot: RobotModel, segments: Seq
                      "gap_after": diagnosis.result["gap_after"]["joint_rmse_mean"]}
 
 
-def write_outputs(diag: Diagnosis, robot: RobotModel, out: Path, robot_name: str = "", plots: bool = True,
-                  log: Callable[[str], None] = print) -> list[Path]:
-    out.mkdir(parents=True, exist_ok=True)
-    paths = [out / "diagnosis.json", out / "augmentation.yaml", out / "report.md"]
-    write_text_atomically(paths[0], json.dumps(diag.result, indent=2))
-    write_text_atomically(paths[1], yaml.safe_dump(augmentation(diag, robot, robot_name), sort_keys=False))
-    write_text_atomically(paths[2], report(diag, robot))
-    if plots:
-        paths.extend(plot(diag, robot, out))
-    for path in paths:
-        log(f"[diagnose] wrote {path}")
-    return paths
-
-
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "diagnose", help="name the physical effects the nominal model lacks, from contact-free bags",
@@ -553,6 +523,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--holdout", type=float, default=HOLDOUT,
                         help="share of every recording (its end) held out for selection (default 0.3)")
     parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--against", metavar="MODEL_DIR|AUGMENTATION",
+                        help="diagnose relative to a model already corrected by this augmentation.yaml (or a model "
+                             "directory's): only what changed since is named (a new tool on a calibrated robot); "
+                             "the written augmentation.yaml holds both")
     parser.add_argument("--effects", type=_effect_list, default=EFFECT_NAMES, metavar="A,B",
                         help=f"restrict the library to these effects (default all: {','.join(EFFECT_NAMES)})")
     parser.add_argument("--max-gain-error", type=float, default=Priors.max_gain_error, metavar="X",
@@ -574,7 +548,13 @@ def _effect_list(text: str) -> tuple[str, ...]:
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    robot = RobotModel.from_config(config)
+    base = None
+    if args.against:
+        source = Path(args.against)
+        base = load_augmentation(source / "augmentation.yaml" if source.is_dir() else source, config.joint_names)
+        print(f"[diagnose] relative to the model augmented by {base.source}: {', '.join(base.effect_names)}",
+              flush=True)
+    robot = RobotModel.from_config(config, base)
     segments = load_recordings(args.bags, config.joint_names, config.input.command_max_age, "diagnose")
     log = lambda line: print(line, flush=True)   # noqa: E731
     if args.max_gain_error <= 0 or args.max_joint_offset <= 0:

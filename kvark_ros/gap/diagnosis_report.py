@@ -1,13 +1,17 @@
-"""``kvark diagnose``'s report: ``report.md`` (gap tables on filtered and raw signals, priors, warnings, the
-effects with their parameters) and the plots (gap per joint, residual against velocity and position)."""
+"""``kvark diagnose``'s outputs: ``diagnosis.json``, ``augmentation.yaml``, ``report.md`` (gap tables on filtered
+and raw signals, priors, warnings, look-alikes, the effects with their parameters) and the plots (gap per joint,
+residual against velocity and position)."""
 from __future__ import annotations
 
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
+import yaml
 
+from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.gap.effects import Signals, Term
 
@@ -28,6 +32,8 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
     r = diag.result
     lines = ["# Model-gap diagnosis", "",
              f"Held-out samples: {r['samples']['held_out']} (last {r['holdout']:.0%} of each recording).", "",
+             *([f"Relative to the model augmented by `{r['against']}`: the effects below are what changed since; "
+                "augmentation.yaml holds both.", ""] if r.get("against") else []),
              f"Gap RMSE on the selection's signals ({r['gap_filtering']}) and on raw signals "
              f"({r['gap_raw'].get('filter', 'none')}), which published identification figures use.", "",
              "| joint | gap before (N·m) | gap after (N·m) | reduction | raw before | raw after |",
@@ -103,4 +109,37 @@ def plot(diag: Diagnosis, robot: RobotModel, out: Path) -> list[Path]:
         paths.append(out / f"residual_vs_{key}.png")
         fig.savefig(paths[-1], dpi=80)
         plt.close(fig)
+    return paths
+
+
+def augmentation(diag: Diagnosis, robot: RobotModel, robot_name: str = "") -> dict:
+    """The accepted effects as a plain mapping (``augmentation.yaml``); diagnosed against an augmented ``robot``, the
+    base augmentation's effects come first and the new ones add to them (``core.augmentation``), so the file is
+    the whole correction relative to the URDF."""
+    entries = []
+    if robot.augmentation is not None:
+        entries += list((yaml.safe_load(robot.augmentation.text) or {}).get("effects") or [])
+    for term, th, eff in zip(diag.terms, diag.theta, diag.result["effects"]):
+        entries.append({"name": term.name, "joint_indices": [int(j) for j in term.joints],
+                        "joints": [robot.joint_names[j] for j in term.joints],
+                        "variant": {k: float(v) for k, v in term.variant.items()},
+                        "parameters": eff["parameters"], "theta": [float(v) for v in th]})
+    against = {} if robot.augmentation is None else {"against": robot.augmentation.source}
+    return {"robot": robot_name, "joint_names": list(robot.joint_names), **against,
+            "convention": "tau_m - tau_EL = sum over effects of design(q, qd, qdd, tau_m) @ theta "
+                          "(kvark_ros.gap.effects.augmentation_gap)",
+            "effects": entries}
+
+
+def write_outputs(diag: Diagnosis, robot: RobotModel, out: Path, robot_name: str = "", plots: bool = True,
+                  log: Callable[[str], None] = print) -> list[Path]:
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / "diagnosis.json", out / "augmentation.yaml", out / "report.md"]
+    write_text_atomically(paths[0], json.dumps(diag.result, indent=2))
+    write_text_atomically(paths[1], yaml.safe_dump(augmentation(diag, robot, robot_name), sort_keys=False))
+    write_text_atomically(paths[2], report(diag, robot))
+    if plots:
+        paths.extend(plot(diag, robot, out))
+    for path in paths:
+        log(f"[diagnose] wrote {path}")
     return paths

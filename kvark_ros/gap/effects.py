@@ -108,7 +108,8 @@ def flange_parameter_map(robot: RobotModel) -> tuple[int, np.ndarray]:
 
 
 def signals(robot: RobotModel, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, tau_m: np.ndarray) -> Signals:
-    """Gap and the regressors that need the model, for samples (T, n)."""
+    """Gap and the regressors that need the model, for samples (T, n); relative to ``robot``'s augmentation if it
+    has one."""
     model, data = robot.model, robot.data
     jid, a_map = flange_parameter_map(robot)
     t, n = q.shape
@@ -117,11 +118,13 @@ def signals(robot: RobotModel, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray, t
     sensitivity = np.empty((t, n, n))
     links = np.empty((t, n, 10 * (jid - 1)))
     for k in range(t):
-        gap[k] = tau_m[k] - robot.inverse_dynamics(q[k], qd[k], qdd[k])
-        y = pin.computeJointTorqueRegressor(model, data, q[k], qd[k], qdd[k])
+        # model_torque: τ_EL plus, on an augmented model (kvark diagnose --against), the torque effects it has
+        gap[k] = tau_m[k] - robot.model_torque(q[k], qd[k], qdd[k], tau_m[k])
+        q_model = robot.model_position(q[k])
+        y = pin.computeJointTorqueRegressor(model, data, q_model, qd[k], qdd[k])
         payload[k] = y[:, 10 * (jid - 1):10 * jid] @ a_map
         links[k] = y[:, :10 * (jid - 1)]
-        pin.computeRNEADerivatives(model, data, q[k], qd[k], qdd[k])
+        pin.computeRNEADerivatives(model, data, q_model, qd[k], qdd[k])
         sensitivity[k] = data.dtau_dq
     return Signals(q, qd, qdd, tau_m, gap, payload, sensitivity, links)
 

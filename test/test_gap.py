@@ -328,3 +328,18 @@ def test_against_a_corrected_model_only_the_new_effect_is_named(runs, robots, tm
     # two fits differ only in how the offsets were obtained)
     both = diagnose(robots["panda"], [estimator_inputs(run)], log=lambda _: None)
     assert diag.result["gap_after"]["joint_rmse_mean"] <= 1.2 * both.result["gap_after"]["joint_rmse_mean"]
+
+
+def test_a_known_payload_com_is_kept_and_the_mass_found(runs, robots):
+    """`--payload-com`: with the CoM given, only mass and inertia are fitted; the written θ has the 10 parameters
+    with first moments m·c."""
+    from kvark_ros.gap.diagnosis_report import augmentation as document_of
+    com = PAYLOAD.get("com", [0.0, 0.0, 0.0])
+    priors = Priors(max_gain_error=0.2, max_joint_offset=float(np.radians(5.0)), payload_com=tuple(com))
+    diag = diagnose(robots["panda"], [estimator_inputs(runs[("panda", "payload")])], log=lambda _: None, priors=priors)
+    eff = _effect(diag, "payload")
+    assert abs(eff["parameters"]["mass"] - PAYLOAD["mass"]) <= 0.1 * PAYLOAD["mass"]
+    np.testing.assert_allclose(eff["parameters"]["com"], com, atol=1e-12)      # fixed, not fitted
+    entry = [e for e in document_of(diag, robots["panda"])["effects"] if e["name"] == "payload"][0]
+    assert len(entry["theta"]) == 10
+    np.testing.assert_allclose(entry["theta"][1:4], np.array(com) * entry["theta"][0], atol=1e-12)

@@ -133,6 +133,7 @@ class _Fitter:
         for term in terms:     # Gaussian priors toward the URDF: rows Δπ/σ = 0 (weighted units), σ = ∞: no row
             if term.name in self.prior_scale:
                 scale = self.prior_scale[term.name]
+                scale = scale[term.parameter_index()] if term.name == "payload" else scale
                 rows = np.zeros((term.size, a.shape[1]))
                 rows[:, pos:pos + term.size] = np.diag(1.0 / scale)
                 keep = np.isfinite(scale)
@@ -235,7 +236,7 @@ def _without_saturated(fitter: _Fitter, terms: Sequence[Term], term: Term, *fit:
 def _inconsistent_bodies(fitter: _Fitter, term: Term, theta: np.ndarray) -> list[tuple[int, str]]:
     """(body index, problem) of every body a payload (index 0) or link_inertia θ makes physically impossible."""
     if term.name == "payload":
-        problem = inertia_problem(fitter.flange + fitter.flange_map @ theta)
+        problem = inertia_problem(fitter.flange + fitter.flange_map @ term.full_theta(theta))
         return [] if problem is None else [(0, problem)]
     if term.name == "link_inertia":
         return [(i, problem) for i, (urdf, change) in enumerate(zip(fitter.links, theta.reshape(-1, 10)))
@@ -340,7 +341,7 @@ def _scored_candidates(fitter: _Fitter, terms: Sequence[Term], r_he: np.ndarray,
     for name in effects:
         if name in used:
             continue
-        for variant in variants(name):
+        for variant in variants(name, fitter.priors):
             term = _screen(name, variant, fitter, terms, r_he, n)
             if term is not None:
                 fit = fitter.fit([*terms, term])
@@ -402,7 +403,8 @@ def diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: fl
              effects: Sequence[str] = EFFECT_NAMES, log: Callable[[str], None] = print,
              priors: Priors | None = None) -> Diagnosis:
     """Greedy selection of named effects explaining the gap (see module docstring), within ``priors``
-    (default ``Priors()`` with the flange link's mass of ``robot``)."""
+    (default ``Priors()`` with the flange link's mass of ``robot``; ``priors.payload_com`` fixes the payload's
+    centre of mass)."""
     priors = priors or Priors()
     flange = flange_link_parameters(robot.model, robot.flange_frame_id)
     priors = replace(priors, flange_mass=float(flange[0]))
@@ -460,7 +462,7 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         params, ci = physical_parameters(term, th, cv)
         joints = list(term.joints) if term.name not in ("payload", "link_inertia") else info["affected"]
         if term.name == "payload":
-            params.update(flange_change(fitter.flange, fitter.flange_map, th))
+            params.update(flange_change(fitter.flange, fitter.flange_map, term.full_theta(th)))
         result_effects.append({"name": term.name, "joints": [int(j) for j in joints], "parameters": params,
                                "ci95": ci, "gap_reduction": info["gap_reduction"],
                                "held_out_rmse_before": info["held_out_rmse_before"],
@@ -477,7 +479,7 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
             priors.max_joint_offset)), "flange_mass": priors.flange_mass},
         "warnings": plausibility_warnings(terms, theta_split(terms, theta), priors, robot.joint_names),
         "look_alikes": look_alikes({t.name: fitter.design(t)[0] for t in terms},
-                                   {name: fitter.design(Term(name, tuple(range(n)), variants(name)[0]))[0]
+                                   {name: fitter.design(Term(name, tuple(range(n)), variants(name, priors)[0]))[0]
                                     for name in effects}, fitter.w),
         "against": None if robot.augmentation is None else robot.augmentation.source,
         "holdout": holdout, "samples": {"train": len(train), "held_out": len(held)},
@@ -527,6 +529,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="diagnose relative to a model already corrected by this augmentation.yaml (or a model "
                              "directory's): only what changed since is named (a new tool on a calibrated robot); "
                              "the written augmentation.yaml holds both")
+    parser.add_argument("--payload-com", type=_com, metavar="X,Y,Z",
+                        help="the payload's known centre of mass in the flange frame, m: only its mass and inertia "
+                             "are fitted")
     parser.add_argument("--effects", type=_effect_list, default=EFFECT_NAMES, metavar="A,B",
                         help=f"restrict the library to these effects (default all: {','.join(EFFECT_NAMES)})")
     parser.add_argument("--max-gain-error", type=float, default=Priors.max_gain_error, metavar="X",
@@ -536,6 +541,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         metavar="DEG", help="prior of joint_offset: |δ| ≤ DEG degrees (default 1; absolute encoders)")
     parser.add_argument("--no-plots", action="store_true", help="do not write plots")
     parser.set_defaults(run=run)
+
+
+def _com(text: str) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(np.isfinite(values)):
+        raise argparse.ArgumentTypeError(f"expected three finite numbers X,Y,Z in metres, got {text!r}")
+    return values
 
 
 def _effect_list(text: str) -> tuple[str, ...]:
@@ -559,7 +574,8 @@ def run(args: argparse.Namespace) -> int:
     log = lambda line: print(line, flush=True)   # noqa: E731
     if args.max_gain_error <= 0 or args.max_joint_offset <= 0:
         raise ValueError("--max-gain-error and --max-joint-offset must be positive")
-    priors = Priors(max_gain_error=args.max_gain_error, max_joint_offset=float(np.radians(args.max_joint_offset)))
+    priors = Priors(max_gain_error=args.max_gain_error, max_joint_offset=float(np.radians(args.max_joint_offset)),
+                    payload_com=args.payload_com)
     diag = diagnose(robot, segments, args.holdout, effects=args.effects, log=log, priors=priors)
     write_outputs(diag, robot, Path(args.out), config.robot, plots=not args.no_plots, log=log)
     return 0

@@ -123,7 +123,7 @@ def augmentation(diag: Diagnosis, robot: RobotModel, robot_name: str = "") -> di
         entries.append({"name": term.name, "joint_indices": [int(j) for j in term.joints],
                         "joints": [robot.joint_names[j] for j in term.joints],
                         "variant": {k: float(v) for k, v in term.variant.items()},
-                        "parameters": eff["parameters"], "theta": [float(v) for v in th]})
+                        "parameters": eff["parameters"], "theta": [float(v) for v in term.full_theta(th)]})
     against = {} if robot.augmentation is None else {"against": robot.augmentation.source}
     return {"robot": robot_name, "joint_names": list(robot.joint_names), **against,
             "convention": "tau_m - tau_EL = sum over effects of design(q, qd, qdd, tau_m) @ theta "

@@ -59,11 +59,13 @@ class Priors:
         factory; a larger offset is a gravity-like effect (link mass, CoM) in disguise.
     flange_mass: the URDF's mass of the flange's link with what is fixed to it (kg); a tool mismatch can
         remove at most that.
+    payload_com: a payload's known centre of mass (flange frame, m): only its mass and inertia are fitted.
     """
 
     max_gain_error: float = 0.1
     max_joint_offset: float = float(np.radians(1.0))
     flange_mass: float = 0.0
+    payload_com: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,7 +170,28 @@ class Term:
         k = len(self.per_joint_parameters)
         if self.name == "link_inertia":
             return k * (len(self.joints) - 1)          # every link but the flange's
-        return k if self.name == "payload" else k * len(self.joints)
+        if self.name == "payload":
+            return len(self.parameter_index())
+        return k * len(self.joints)
+
+    @property
+    def fixed_com(self) -> np.ndarray | None:
+        """A payload's known centre of mass (3,) m, flange frame (``kvark diagnose --payload-com``), or None."""
+        if self.name != "payload" or "com_x" not in self.variant:
+            return None
+        return np.array([self.variant["com_x"], self.variant["com_y"], self.variant["com_z"]])
+
+    def parameter_index(self) -> np.ndarray:
+        """Which of the 10 payload parameters are fitted: all, or with a known CoM mass and inertia (the first
+        moments follow as m c)."""
+        return np.arange(10) if self.fixed_com is None else np.array([0, 4, 5, 6, 7, 8, 9])
+
+    def full_theta(self, theta: np.ndarray) -> np.ndarray:
+        """The payload's 10 parameters from the fitted ones (identity for every other effect)."""
+        com = self.fixed_com
+        if com is None:
+            return theta
+        return np.concatenate([[theta[0]], theta[0] * com, theta[1:]])
 
     def bounds(self, priors: Priors) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper bounds of θ (size,) under ``priors``."""
@@ -187,7 +210,11 @@ class Term:
         """Regressor block (T, n, size): gap rows × parameters."""
         t, n = s.q.shape
         if self.name == "payload":
-            return s.payload_regressor
+            com = self.fixed_com
+            if com is None:
+                return s.payload_regressor
+            y = s.payload_regressor          # first moments m c: their columns fold into the mass column
+            return np.concatenate([y[:, :, :1] + y[:, :, 1:4] @ com[:, None], y[:, :, 4:]], axis=2)
         if self.name == "link_inertia":
             return s.link_regressor
         out = np.zeros((t, n, self.size))
@@ -205,8 +232,10 @@ class Term:
         return out
 
 
-def variants(name: str) -> list[dict[str, float]]:
-    """The fixed settings an effect is tried with."""
+def variants(name: str, priors: Priors | None = None) -> list[dict[str, float]]:
+    """The fixed settings an effect is tried with (a payload's known CoM comes from ``priors``)."""
+    if name == "payload" and priors is not None and priors.payload_com is not None:
+        return [dict(zip(("com_x", "com_y", "com_z"), map(float, priors.payload_com)))]
     if name == "stribeck_friction":
         return [{"stribeck_velocity": v, "epsilon": TANH_EPSILON} for v in STRIBECK_VELOCITIES]
     if name == "position_ripple":
@@ -221,7 +250,11 @@ def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None) -
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)) if cov is not None else np.full(len(theta), np.nan)
     half = 1.96 * sd
     if term.name == "payload":
-        return payload_parameters(theta, cov)
+        if term.fixed_com is not None:           # covariance of the 10 parameters through θ_full = T φ
+            jac = np.zeros((10, term.size))
+            jac[0, 0], jac[1:4, 0], jac[4:, 1:] = 1.0, term.fixed_com, np.eye(6)
+            cov = None if cov is None else jac @ cov @ jac.T
+        return payload_parameters(term.full_theta(theta), cov)
     if term.name == "link_inertia":     # per link (joint frame): Δm kg, Δ(m c) kg·m, ΔI kg·m² about the joint origin
         values, widths = theta.reshape(-1, 10), half.reshape(-1, 10)
         return ({"mass_change": values[:, 0].tolist(), "first_moment_change": values[:, 1:4].tolist(),
@@ -273,7 +306,8 @@ def payload_parameters(theta: np.ndarray, cov: np.ndarray | None) -> tuple[dict,
 def term_from_entry(entry: Mapping[str, Any], joint_names: Sequence[str]) -> tuple[Term, np.ndarray]:
     """A Term and its raw parameter vector θ from one ``augmentation.yaml`` effect entry."""
     joints = tuple(int(j) for j in entry["joint_indices"])
-    variant = {k: float(v) for k, v in (entry.get("variant") or {}).items()}
+    # a file's payload θ is always the 10 parameters, also when diagnose fitted it with a known CoM
+    variant = {k: float(v) for k, v in (entry.get("variant") or {}).items() if not k.startswith("com_")}
     term = Term(entry["name"], joints, variant)
     return term, np.asarray(entry["theta"], dtype=float)
 

@@ -73,6 +73,7 @@ PLANTS = {
     ("ur5", "position_ripple"): {"position_ripple": RIPPLE["ur5"]},
     ("panda", "joint_offset"): {"joint_offset": JOINT_OFFSET["panda"]},
     ("ur5", "joint_offset"): {"joint_offset": JOINT_OFFSET["ur5"]},
+    ("panda", "realistic"): yaml.safe_load((ROOT / "kvark_ros/sim/plants/panda_realistic.yaml").read_text()),
 }
 
 
@@ -343,3 +344,14 @@ def test_a_known_payload_com_is_kept_and_the_mass_found(runs, robots):
     entry = [e for e in document_of(diag, robots["panda"])["effects"] if e["name"] == "payload"][0]
     assert len(entry["theta"]) == 10
     np.testing.assert_allclose(entry["theta"][1:4], np.array(com) * entry["theta"][0], atol=1e-12)
+
+
+def test_a_realistic_plant_gives_an_augmentation_the_robot_model_accepts(diagnoses):
+    """Link inertial errors, a tool mismatch, stiction and drifts (panda_realistic.yaml): whatever is named, the
+    written augmentation leaves every link physically consistent (the robot model refuses it otherwise), and the
+    gap shrinks."""
+    diag = diagnoses[("panda", "realistic")]
+    names = load_config(ROOT / "config" / "panda.yaml").joint_names
+    document = augmentation(diag, _robot("panda"), "panda")
+    _robot("panda", parse_augmentation(yaml.safe_dump(document), names))     # raises RobotModelError if not
+    _shrinks(diag, 0.6)

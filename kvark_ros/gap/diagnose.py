@@ -30,7 +30,6 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
-from scipy.optimize import lsq_linear
 
 from kvark_ros.core.augmentation import load_augmentation
 from kvark_ros.core.config import EstimatorConfig, load_config
@@ -55,6 +54,7 @@ from kvark_ros.gap.effects import (
     variants,
 )
 from kvark_ros.gap.diagnosis_report import Diagnosis, write_outputs
+from kvark_ros.gap.fitting import Fitter
 from kvark_ros.gap.plausibility import (
     RAW_QDD_WINDOW,
     flange_change,
@@ -102,61 +102,7 @@ def _rmse(r: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean(np.square(r), axis=0))
 
 
-class _Fitter:
-    """Bounded weighted least squares of the gap on a set of terms, within ``priors``."""
-
-    def __init__(self, train: Signals, held: Signals, weights: np.ndarray, priors: Priors) -> None:
-        self.train, self.held, self.w, self.priors = train, held, weights, priors
-        self.prior_scale: dict[str, np.ndarray] = {}   # Gaussian prior σ of payload / link_inertia θ (∞: none)
-        self.t, self.n = train.gap.shape
-        self._cache: dict = {}
-
-    def design(self, term: Term) -> tuple[np.ndarray, np.ndarray]:
-        """(train, held-out) regressor blocks of a term, cached."""
-        key = (term.name, term.joints, tuple(sorted(term.variant.items())))
-        if key not in self._cache:
-            self._cache[key] = (term.design(self.train), term.design(self.held))
-        return self._cache[key]
-
-    def fit(self, terms: Sequence[Term]) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
-        """(θ, covariance, train residual, held-out residual)."""
-        if not terms:
-            return np.zeros(0), None, self.train.gap.copy(), self.held.gap.copy()
-        blocks = [self.design(term) for term in terms]
-        a_tr = np.concatenate([b[0] for b in blocks], axis=2)
-        a_he = np.concatenate([b[1] for b in blocks], axis=2)
-        lo = np.concatenate([term.bounds(self.priors)[0] for term in terms])
-        hi = np.concatenate([term.bounds(self.priors)[1] for term in terms])
-        a = (a_tr * self.w[None, :, None]).reshape(-1, a_tr.shape[2])
-        b = (self.train.gap * self.w).reshape(-1)
-        pos = 0
-        for term in terms:     # Gaussian priors toward the URDF: rows Δπ/σ = 0 (weighted units), σ = ∞: no row
-            if term.name in self.prior_scale:
-                scale = self.prior_scale[term.name]
-                scale = scale[term.parameter_index()] if term.name == "payload" else scale
-                rows = np.zeros((term.size, a.shape[1]))
-                rows[:, pos:pos + term.size] = np.diag(1.0 / scale)
-                keep = np.isfinite(scale)
-                a, b = np.vstack((a, rows[keep])), np.concatenate((b, np.zeros(int(keep.sum()))))
-            pos += term.size
-        scale = np.sqrt(np.mean(np.square(a), axis=0)) + 1e-12       # column scaling for conditioning
-        q_mat, r_mat = np.linalg.qr(a / scale)      # same minimiser, a p × p problem for BVLS
-        sol = lsq_linear(r_mat, q_mat.T @ b, bounds=(lo * scale, hi * scale), method="bvls")
-        theta = sol.x / scale
-        r_tr = self.train.gap - a_tr @ theta
-        r_he = self.held.gap - a_he @ theta
-        dof = max(1, a.shape[0] - a.shape[1])
-        sigma2 = float(np.sum(np.square(r_tr * self.w))) / dof
-        an = a / scale
-        cov = sigma2 * np.linalg.pinv(an.T @ an) / np.outer(scale, scale)
-        return theta, cov, r_tr, r_he
-
-    def bic(self, r_tr: np.ndarray, k: int) -> float:
-        mse = np.maximum(np.mean(np.square(r_tr), axis=0), 1e-12)
-        return float(self.t * np.sum(np.log(mse)) + k * np.log(self.t * self.n))
-
-
-def _screen(name: str, variant: dict, fitter: _Fitter, terms: Sequence[Term], r_he: np.ndarray,
+def _screen(name: str, variant: dict, fitter: Fitter, terms: Sequence[Term], r_he: np.ndarray,
             n: int) -> Term | None:
     """Candidate joint set of one effect variant: the payload acts on every joint, a coupled effect
     is screened by ``_screen_coupled``, a per-joint effect keeps the joints whose held-out gap
@@ -175,7 +121,7 @@ def _screen(name: str, variant: dict, fitter: _Fitter, terms: Sequence[Term], r_
     return Term(name, tuple(chosen), variant) if chosen else None
 
 
-def _screen_coupled(name: str, variant: dict, fitter: _Fitter, terms: Sequence[Term], n: int) -> Term | None:
+def _screen_coupled(name: str, variant: dict, fitter: Fitter, terms: Sequence[Term], n: int) -> Term | None:
     """Candidate joint set of a coupled effect (joint_offset): backward elimination from every joint
     whose regressor is not identically zero.
 
@@ -215,7 +161,7 @@ def _at_bounds(term: Term, theta: np.ndarray, priors: Priors) -> np.ndarray:
     return (theta <= lo + 0.01 * span) | (theta >= hi - 0.01 * span)
 
 
-def _without_saturated(fitter: _Fitter, terms: Sequence[Term], term: Term, *fit: np.ndarray) -> tuple:
+def _without_saturated(fitter: Fitter, terms: Sequence[Term], term: Term, *fit: np.ndarray) -> tuple:
     """A drive-gain or joint-offset candidate without the joints whose parameter sits at its prior's bound,
     refitted (repeatedly, until none does).
 
@@ -233,7 +179,7 @@ def _without_saturated(fitter: _Fitter, terms: Sequence[Term], term: Term, *fit:
     return term, fit
 
 
-def _inconsistent_bodies(fitter: _Fitter, term: Term, theta: np.ndarray) -> list[tuple[int, str]]:
+def _inconsistent_bodies(fitter: Fitter, term: Term, theta: np.ndarray) -> list[tuple[int, str]]:
     """(body index, problem) of every body a payload (index 0) or link_inertia θ makes physically impossible."""
     if term.name == "payload":
         problem = inertia_problem(fitter.flange + fitter.flange_map @ term.full_theta(theta))
@@ -244,41 +190,52 @@ def _inconsistent_bodies(fitter: _Fitter, term: Term, theta: np.ndarray) -> list
     return []
 
 
-def _consistent(fitter: _Fitter, terms: Sequence[Term], term: Term, *fit: np.ndarray) -> tuple:
-    """A payload or link_inertia candidate refitted until every body it changes is physically consistent: the
-    prior of each offending body is tightened toward the URDF (σ set to ``first_prior`` where it was ∞, else
-    halved; at most ``MAX_PRIOR_HALVINGS`` times).
+def _bad_bodies(fitter: Fitter, terms: Sequence[Term], theta: np.ndarray) -> list[tuple[int, int, str]]:
+    """(term index, body index, problem) of every body the payload or link_inertia terms of a joint fit θ make
+    physically impossible."""
+    bad, pos = [], 0
+    for index, term in enumerate(terms):
+        bad += [(index, body, problem) for body, problem in _inconsistent_bodies(fitter, term, theta[pos:pos + term.size])]
+        pos += term.size
+    return bad
+
+
+def _consistent(fitter: Fitter, terms: Sequence[Term], *fit: np.ndarray) -> tuple:
+    """A fit of ``terms`` refitted until every body its payload and link_inertia terms change is physically
+    consistent: the prior of each offending body is tightened toward the URDF (σ set to ``first_prior`` where it
+    was ∞, else halved; at most ``MAX_PRIOR_HALVINGS`` times). Returns the last fit (check it with ``_bad_bodies``).
 
     The data identify only some combinations of a link's parameters (a base link turning about z shows only
     its I_zz); the others follow the prior, and a prior loose enough for the identified ones can let them
-    leave the physical set. Tightening only the offending body keeps the identified parameters free elsewhere.
+    leave the physical set, also when a later effect is fitted jointly with them. Tightening only the
+    offending bodies keeps the identified parameters free elsewhere.
     """
-    if term.name not in fitter.prior_scale:
-        return fit
     for _ in range(MAX_PRIOR_HALVINGS):
-        pos = sum(t.size for t in terms)
-        bad = _inconsistent_bodies(fitter, term, fit[0][pos:pos + term.size])
+        bad = _bad_bodies(fitter, terms, fit[0])
         if not bad:
             break
-        scale = fitter.prior_scale[term.name].copy()
-        for body, _ in bad:
-            block = slice(0, 10) if term.name == "payload" else slice(10 * body, 10 * body + 10)
-            first = fitter.first_prior[term.name][block]
+        for index, body, _ in bad:
+            name = terms[index].name
+            scale = fitter.prior_scale[name].copy()
+            block = slice(0, 10) if name == "payload" else slice(10 * body, 10 * body + 10)
+            first = fitter.first_prior[name][block]
             scale[block] = np.where(np.isfinite(scale[block]), 0.5 * scale[block], first)   # ∞ stays ∞ where first is
-        fitter.prior_scale[term.name] = scale
-        fit = fitter.fit([*terms, term])
+            fitter.prior_scale[name] = scale
+        fit = fitter.fit(list(terms))
     return fit
 
 
-def _inadmissible(fitter: _Fitter, terms: Sequence[Term], term: Term, theta: np.ndarray) -> str | None:
-    """Why a fitted candidate is physically impossible, or None: a payload/tool change must leave the flange
-    link physically consistent; a drive gain or joint offset must not sit at its prior's bound."""
+def _inadmissible(fitter: Fitter, terms: Sequence[Term], term: Term, theta: np.ndarray) -> str | None:
+    """Why a fitted candidate (added to ``terms``) is physically impossible, or None: every payload/tool and
+    link change must leave its body physically consistent; a drive gain or joint offset must not sit at its
+    prior's bound."""
     pos = sum(t.size for t in terms)
     mine = theta[pos:pos + term.size]
-    bad = _inconsistent_bodies(fitter, term, mine)
+    bad = _bad_bodies(fitter, [*terms, term], theta)
     if bad:
-        body, problem = bad[0]
-        return f"{'flange link' if term.name == 'payload' else f'link of joint {body + 1}'}: {problem}"
+        index, body, problem = bad[0]
+        name = [*terms, term][index].name
+        return f"{'flange link' if name == 'payload' else f'link of joint {body + 1}'}: {problem}"
     if term.name in ("drive_gain", "joint_offset") and np.all(_at_bounds(term, mine, fitter.priors)):
         return f"{term.name} at the bound of its prior on every joint"
     return None
@@ -290,7 +247,7 @@ def _affected(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     return np.flatnonzero((drop >= MIN_REDUCTION * before) & (drop >= MIN_ABS_REDUCTION))
 
 
-def _prune(fitter: _Fitter, terms: list[Term], theta: np.ndarray, cov: np.ndarray | None, r_tr: np.ndarray,
+def _prune(fitter: Fitter, terms: list[Term], theta: np.ndarray, cov: np.ndarray | None, r_tr: np.ndarray,
            r_he: np.ndarray, bic: float, log: Callable[[str], None]) -> tuple:
     """Backward pass over the accepted terms (module docstring, step 2): (terms, θ, covariance,
     train and held-out residuals, BIC)."""
@@ -317,7 +274,7 @@ def _prune(fitter: _Fitter, terms: list[Term], theta: np.ndarray, cov: np.ndarra
     return terms, theta, cov, r_tr, r_he, bic
 
 
-def _contributions(fitter: _Fitter, terms: list[Term], r_he: np.ndarray) -> list[dict]:
+def _contributions(fitter: Fitter, terms: list[Term], r_he: np.ndarray) -> list[dict]:
     """Each term's share: the held-out gap of all terms but that one against all of them."""
     after = _rmse(r_he)
     history = []
@@ -332,7 +289,7 @@ def _contributions(fitter: _Fitter, terms: list[Term], r_he: np.ndarray) -> list
     return history
 
 
-def _scored_candidates(fitter: _Fitter, terms: Sequence[Term], r_he: np.ndarray, effects: Sequence[str],
+def _scored_candidates(fitter: Fitter, terms: Sequence[Term], r_he: np.ndarray, effects: Sequence[str],
                        n: int) -> list[tuple]:
     """Every screened candidate added to ``terms`` and fitted: (weighted held-out error, term, fit),
     best first."""
@@ -350,7 +307,7 @@ def _scored_candidates(fitter: _Fitter, terms: Sequence[Term], r_he: np.ndarray,
     return scored
 
 
-def _greedy(fitter: _Fitter, effects: Sequence[str], n: int, first_choice: int, first_round: list[tuple],
+def _greedy(fitter: Fitter, effects: Sequence[str], n: int, first_choice: int, first_round: list[tuple],
             log: Callable[[str], None]) -> tuple | None:
     """Forward selection and the backward pass (module docstring, step 2), starting in the first
     round from the acceptable candidate of the ``first_choice``-th distinct effect name (0 = the
@@ -369,7 +326,7 @@ def _greedy(fitter: _Fitter, effects: Sequence[str], n: int, first_choice: int, 
             if term.name in passed:
                 continue
             term, (th, cv, rt, rh) = _without_saturated(fitter, terms, term, th, cv, rt, rh)
-            th, cv, rt, rh = _consistent(fitter, terms, term, th, cv, rt, rh)
+            th, cv, rt, rh = _consistent(fitter, [*terms, term], th, cv, rt, rh)
             k = sum(t.size for t in terms) + term.size
             new_bic = fitter.bic(rt, k)
             after = _rmse(rh)
@@ -426,7 +383,7 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         f"(every {DECIMATE_DT * 1e3:.0f} ms, last {holdout:.0%} of each recording held out)")
     gap_before = _rmse(held.gap)
     weights = 1.0 / np.maximum(_rmse(train.gap), 0.01)
-    fitter = _Fitter(train, held, weights, priors)
+    fitter = Fitter(train, held, weights, priors)
     fitter.flange = flange_link_parameters(robot.model, robot.flange_frame_id)
     fitter.flange_map = flange_parameter_map(robot)[1]
     link_scale = link_prior_scale(robot)
@@ -451,6 +408,11 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         if best is None or (found[-1] < best[-1] and len(found[0]) <= len(best[0])):
             best = found
     terms, theta, cov, _, r_he, _ = best
+    theta, cov, _, r_he = _consistent(fitter, terms, *fitter.fit(terms))    # the pruned set refitted jointly
+    while (bad := _bad_bodies(fitter, terms, theta)):
+        log(f"[diagnose] dropped {terms[bad[0][0]].name}: still physically inconsistent ({bad[0][2]})")
+        terms = [t for i, t in enumerate(terms) if i != bad[0][0]]
+        theta, cov, _, r_he = _consistent(fitter, terms, *fitter.fit(terms))
     history = _contributions(fitter, terms, r_he)
     gap_after = _rmse(r_he)
     result_effects, thetas = [], []

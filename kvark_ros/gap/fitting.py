@@ -1,0 +1,93 @@
+"""The least-squares core of ``kvark diagnose``: the gap on a set of effects, bounded and weighted, with the
+Gaussian priors toward the URDF of payload and link inertia (docs/method.md §8.3)."""
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+from scipy.optimize import lsq_linear
+
+from kvark_ros.gap.effects import Priors, Signals, Term
+
+
+class Fitter:
+    """Bounded weighted least squares of the gap on a set of terms, within ``priors``."""
+
+    def __init__(self, train: Signals, held: Signals, weights: np.ndarray, priors: Priors) -> None:
+        self.train, self.held, self.w, self.priors = train, held, weights, priors
+        self.prior_scale: dict[str, np.ndarray] = {}   # Gaussian prior σ of payload / link_inertia θ (∞: none)
+        self.first_prior: dict[str, np.ndarray] = {}   # σ a body's prior starts from when first tightened
+        self.flange = np.zeros(10)                      # URDF parameters of the flange link (joint frame)
+        self.flange_map = np.eye(10)                    # flange frame → that joint frame (payload θ)
+        self.links: list[np.ndarray] = []               # URDF parameters of the other links (joint frames)
+        self.t, self.n = train.gap.shape
+        self._cache: dict = {}
+
+    @staticmethod
+    def _key(term: Term) -> tuple:
+        return term.name, term.joints, tuple(sorted(term.variant.items()))
+
+    def design(self, term: Term) -> tuple[np.ndarray, np.ndarray]:
+        """(train, held-out) regressor blocks of a term, cached."""
+        key = self._key(term)
+        if key not in self._cache:
+            self._cache[key] = (term.design(self.train), term.design(self.held))
+        return self._cache[key]
+
+    def _normal_blocks(self, one: Term, other: Term) -> np.ndarray:
+        """Weighted Gram block Aᵢᵀ W² Aⱼ of two terms' training regressors, cached: hundreds of fits reuse them."""
+        key = ("gram", self._key(one), self._key(other))
+        if key not in self._cache:
+            a, b = self.design(one)[0], self.design(other)[0]
+            w2 = np.square(self.w)
+            self._cache[key] = np.einsum("tjp,j,tjq->pq", a, w2, b, optimize=True)
+        return self._cache[key]
+
+    def _moment(self, term: Term) -> np.ndarray:
+        """Aᵢᵀ W² gap of a term's training regressor, cached."""
+        key = ("moment", self._key(term))
+        if key not in self._cache:
+            self._cache[key] = np.einsum("tjp,j,tj->p", self.design(term)[0], np.square(self.w), self.train.gap,
+                                         optimize=True)
+        return self._cache[key]
+
+    def fit(self, terms: Sequence[Term]) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+        """(θ, covariance, train residual, held-out residual).
+
+        Bounded weighted least squares on the normal equations: with G = AᵀW²A (+ the priors' 1/σ² on the
+        diagonal) = RᵀR and c = AᵀW²b, ‖W(Aθ − b)‖² + ‖θ/σ‖² = ‖Rθ − R⁻ᵀc‖² + const, so BVLS solves a p × p problem
+        built from cached blocks instead of a QR of the stacked T·n × p design.
+        """
+        if not terms:
+            return np.zeros(0), None, self.train.gap.copy(), self.held.gap.copy()
+        gram = np.block([[self._normal_blocks(one, other) for other in terms] for one in terms])
+        moment = np.concatenate([self._moment(term) for term in terms])
+        lo = np.concatenate([term.bounds(self.priors)[0] for term in terms])
+        hi = np.concatenate([term.bounds(self.priors)[1] for term in terms])
+        rows = self.t * self.n
+        pos = 0
+        for term in terms:     # Gaussian priors toward the URDF: rows Δπ/σ = 0 (weighted units), σ = ∞: no row
+            if term.name in self.prior_scale:
+                scale = self.prior_scale[term.name]
+                scale = scale[term.parameter_index()] if term.name == "payload" else scale
+                index = pos + np.flatnonzero(np.isfinite(scale))
+                gram[index, index] += 1.0 / np.square(scale[np.isfinite(scale)])
+                rows += len(index)
+            pos += term.size
+        scale = np.sqrt(np.diag(gram) / rows) + 1e-12                # column scaling for conditioning
+        gram_scaled = gram / np.outer(scale, scale)
+        r_mat = np.linalg.cholesky(gram_scaled + 1e-12 * np.trace(gram_scaled) / len(scale) * np.eye(len(scale))).T
+        target = np.linalg.solve(r_mat.T, moment / scale)
+        sol = lsq_linear(r_mat, target, bounds=(lo * scale, hi * scale), method="bvls")
+        theta = sol.x / scale
+        a_tr, a_he = (np.concatenate([self.design(term)[i] for term in terms], axis=2) for i in (0, 1))
+        r_tr = self.train.gap - a_tr @ theta
+        r_he = self.held.gap - a_he @ theta
+        dof = max(1, rows - len(theta))
+        sigma2 = float(np.sum(np.square(r_tr * self.w))) / dof
+        cov = sigma2 * np.linalg.pinv(gram_scaled) / np.outer(scale, scale)
+        return theta, cov, r_tr, r_he
+
+    def bic(self, r_tr: np.ndarray, k: int) -> float:
+        mse = np.maximum(np.mean(np.square(r_tr), axis=0), 1e-12)
+        return float(self.t * np.sum(np.log(mse)) + k * np.log(self.t * self.n))

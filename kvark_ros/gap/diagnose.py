@@ -4,8 +4,10 @@
    Savitzky-Golay filter as ``kvark train``);
 2. greedy forward selection over the named effects of ``kvark_ros.gap.effects``: samples are split
    in time (the last ``holdout`` share of every recording is held out); each round every
-   (effect, joint set) candidate is fitted on the training part by bounded least squares
-   (positive friction, armature and payload mass), the one that lowers the held-out gap most is
+   (effect, joint set) candidate is fitted on the training part by bounded least squares within the
+   priors (positive friction and armature, drive gain and joint offset within ``Priors``, payload and
+   link changes with Gaussian priors toward the URDF and kept physically consistent), the one that
+   lowers the held-out gap most is
    accepted when the BIC improves and the held-out gap of the affected joints drops by at least
    ``MIN_REDUCTION``; the search stops when no candidate is accepted. A backward pass then
    refits without each accepted effect in turn and drops the one whose removal costs least while
@@ -18,8 +20,10 @@
    BIC with no more effects (BIC alone, with correlated samples, lets small spurious effects in:
    a run that trades one look-alike for the right effect ends with fewer of them). Each remaining
    effect's reported reduction is the held-out gap of all effects but that one against all of them;
-3. writes ``diagnosis.json``, ``augmentation.yaml`` (the accepted effects, loadable by
-   ``effects.augmentation_gap``), ``report.md`` and plots.
+3. refits the final set until every link it changes is physically consistent and writes
+   ``diagnosis.json``, ``augmentation.yaml`` (the accepted effects, loadable by
+   ``effects.augmentation_gap``; against an augmented model, its effects first), ``report.md`` and plots
+   (``gap.diagnosis_report``), with the warnings, look-alikes and raw-signal gap of ``gap.plausibility``.
 """
 from __future__ import annotations
 
@@ -479,9 +483,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "diagnose", help="name the physical effects the nominal model lacks, from contact-free bags",
         description="Compute the gap τ_m − τ_EL between the commanded torque and the nominal model on "
-                    "contact-free bags, select named physical effects (friction, armature, payload, drive "
-                    "gain, torque offset, ripple, joint offset) greedily on held-out data, and write "
-                    "diagnosis.json, augmentation.yaml, report.md and plots.")
+                    "contact-free bags, select named physical effects (friction, armature, a payload or tool "
+                    "mismatch at the flange, link inertial parameters, drive gain, torque offset, ripple, joint "
+                    "offset) greedily on held-out data within plausible priors, every link kept physically "
+                    "consistent, and write diagnosis.json, augmentation.yaml, report.md (with warnings and "
+                    "look-alikes) and plots.")
     parser.add_argument("--config", required=True, help="estimator config YAML (e.g. config/panda.yaml)")
     parser.add_argument("--bags", nargs="+", required=True, metavar="BAG", help="contact-free bags")
     parser.add_argument("--holdout", type=float, default=HOLDOUT,

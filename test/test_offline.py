@@ -550,3 +550,37 @@ def test_replay_throughput_of_kvark_on_a_500_hz_bag(config, bags, cli_model, tmp
     samples = len(read_run(bags.payload, config.joint_names).joint_states.stamp)
     assert metrics["samples"] == samples == int(PAYLOAD_S * RATE)
     assert metrics["observers"]["kvark"]["estimates"] >= 0.99 * samples
+
+
+def test_cli_replay_of_free_motion_with_zero_truth_and_a_trim(bags, cli_model, tmp_path, capsys):
+    """`--ground-truth zero` on a contact-free bag: every estimate is error against zero; `--trim` drops the
+    first and last seconds; asking for a truth the bag does not have is one error line."""
+    out = tmp_path / "free"
+    assert main(["replay", "--config", str(CONFIG), "--model", str(cli_model), "--bag", str(bags.mcap),
+                 "--observers", "kvark,momentum", "--ground-truth", "zero", "--trim", "0.5", "0.25",
+                 "--out", str(out), "--no-bag"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["ground_truth"].startswith("zero") and metrics["trim_s"] == [0.5, 0.25]
+    # 1.5 s of the bag kept at 500 Hz, ± one sample at each cut
+    assert abs(metrics["samples"] - (EXCITATION_S - 0.75) * RATE) <= 2
+    kvark = metrics["observers"]["kvark"]
+    assert 0.0 < kvark["joint_rmse_mean"] and kvark["coverage95"] is not None
+    capsys.readouterr()
+    code, err = _cli_error(capsys, ["replay", "--config", str(CONFIG), "--model", str(cli_model), "--bag",
+                                    str(bags.mcap), "--ground-truth", "reference", "--out", str(tmp_path / "ref"),
+                                    "--no-bag"])
+    assert code == 1 and "--ground-truth reference needs --reference-bag" in err
+    code, err = _cli_error(capsys, ["replay", "--config", str(CONFIG), "--model", str(cli_model), "--bag",
+                                    str(bags.mcap), "--trim", "5", "5", "--out", str(tmp_path / "t"), "--no-bag"])
+    assert code == 1 and "--trim 5.0 5.0 leaves" in err
+
+
+def _cli_error(capsys, argv: list[str]) -> tuple[int, str]:
+    """Exit code and the one stderr line of a CLI run expected to fail."""
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = 1 if isinstance(exc.code, str) else exc.code
+        capsys.readouterr()
+        return code, str(exc.code)
+    return code, capsys.readouterr().err.strip()

@@ -36,7 +36,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from kvark_ros.core.augmentation import load_augmentation
-from kvark_ros.core.config import EstimatorConfig, load_config
+from kvark_ros.core.config import ConfigError, EstimatorConfig, load_config
 from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.linalg import single_threaded_blas
 from kvark_ros.core.model_store import TrainedModel, save_model
@@ -541,7 +541,7 @@ def run(args: argparse.Namespace) -> int:
     segments = load_recordings(args.bags, config.joint_names, config.input.command_max_age, "diagnose")
     log = lambda line: print(line, flush=True)   # noqa: E731
     if args.max_gain_error <= 0 or args.max_joint_offset <= 0:
-        raise ValueError("--max-gain-error and --max-joint-offset must be positive")
+        raise ConfigError("--max-gain-error and --max-joint-offset must be positive")
     priors = Priors(max_gain_error=args.max_gain_error, max_joint_offset=float(np.radians(args.max_joint_offset)),
                     payload_com=args.payload_com)
     diag = diagnose(robot, segments, args.holdout, effects=args.effects, log=log, priors=priors)

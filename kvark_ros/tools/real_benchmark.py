@@ -32,7 +32,7 @@ from kvark_ros.core.training import train_model
 from kvark_ros.io import BagError, read_run
 from kvark_ros.io.alignment import estimator_inputs
 from kvark_ros.tools.metrics import observer_metrics
-from kvark_ros.tools.replay import GroundTruth, run_observer
+from kvark_ros.tools.replay import run_observer, zero_truth
 
 LEARNED_BASELINES = ("gpadkf", "nnadkf", "gmr_gp")
 
@@ -57,7 +57,7 @@ def split(inputs: EstimatorInputs, train_share: float, rate: float) -> tuple[Est
 def evaluate(config: EstimatorConfig, trained: Any, held: EstimatorInputs, observers: Sequence[str],
              log) -> dict[str, Any]:
     """metrics.json-style entries of every observer on the held-out part, against a zero truth."""
-    truth = GroundTruth("zero: contact-free recording", np.zeros(held.q.shape), np.zeros((len(held), 6)))
+    truth = zero_truth(held, "contact-free recording")
     results = {}
     for name in observers:
         result = run_observer(config, trained, held, name)

@@ -4,9 +4,11 @@ One pass over the bag per observer through the same ``Estimator`` the node uses.
 ``estimates/`` (a rosbag2 MCAP bag: the inputs plus each observer's outputs under ``/kvark/<observer>/``),
 ``metrics.json`` (paper v2 Tables IV-V), ``report.md`` and plots.
 
-Ground truth, in order of preference: the true external torque the bag carries (simulation),
-the wrist F/T through ``τ = Jᵀ w`` (v2 eq. 37), or the two-run difference against a
-``--reference-bag`` recorded without the load (v2 eq. 40, our sign: ``τ_ext = τ_free − τ_loaded``).
+Ground truth (``--ground-truth``), ``auto`` takes in order of preference: the true external torque the
+bag carries (``topic``, simulation), the wrist F/T through ``τ = Jᵀ w`` (``ft``, v2 eq. 37), or the
+two-run difference against a ``--reference-bag`` recorded without the load (``reference``, v2 eq. 40,
+our sign: ``τ_ext = τ_free − τ_loaded``); ``zero`` says the robot touched nothing (free motion), so every
+estimate is error. ``--trim START END`` drops the first START and last END seconds (a start-up or a stop).
 """
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ from typing import Sequence
 
 import numpy as np
 
-from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, load_config, parse_observers
+from kvark_ros.core.config import OBSERVER_NAMES, ConfigError, EstimatorConfig, load_config, parse_observers
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.inputs import EstimatorInputs
@@ -66,9 +68,47 @@ def _align(stamp: np.ndarray, source_stamp: np.ndarray, values: np.ndarray) -> n
     return out
 
 
+GROUND_TRUTHS = ("auto", "zero", "topic", "ft", "reference")
+
+
+def zero_truth(inputs: EstimatorInputs, why: str) -> GroundTruth:
+    """A true external torque and wrench of zero on every sample (a contact-free recording)."""
+    return GroundTruth(f"zero: {why}", np.zeros(inputs.q.shape), np.zeros((len(inputs), 6)))
+
+
+def trimmed_rows(stamp: np.ndarray, start: float, end: float) -> np.ndarray:
+    """Indices of the samples from ``start`` s after the first to ``end`` s before the last; ValueError if that
+    leaves fewer than two (ConfigError: a user error of the option)."""
+    if start < 0.0 or end < 0.0:
+        raise ConfigError(f"--trim needs two non-negative durations in seconds, got {start} {end}")
+    elapsed = stamp - stamp[0]
+    keep = np.flatnonzero((elapsed >= start) & (elapsed <= elapsed[-1] - end))
+    if len(keep) < 2:
+        raise ConfigError(f"--trim {start} {end} leaves {len(keep)} samples of a {elapsed[-1]:.2f} s recording")
+    return keep
+
+
+def _take(inputs: EstimatorInputs, truth: GroundTruth | None,
+          rows: np.ndarray) -> tuple[EstimatorInputs, GroundTruth | None]:
+    """The inputs and the ground truth at ``rows``."""
+    kept = EstimatorInputs(inputs.stamp[rows], inputs.q[rows], inputs.qd[rows], inputs.tau_m[rows],
+                           inputs.torque_source, inputs.dropped)
+    if truth is None:
+        return kept, None
+    return kept, GroundTruth(truth.kind, truth.tau_ext[rows], None if truth.wrench is None else truth.wrench[rows])
+
+
 def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, inputs: EstimatorInputs,
-                 reference: EstimatorInputs | None) -> GroundTruth | None:
-    """The best ground truth the data offers (see module docstring), on the inputs' stamps."""
+                 reference: EstimatorInputs | None, kind: str = "auto") -> GroundTruth | None:
+    """The ground truth ``kind`` (``GROUND_TRUTHS``; ``auto``: the best the data offers, see module docstring) on
+    the inputs' stamps; ``BagError`` when the asked one is not in the data."""
+    if kind == "zero":
+        return zero_truth(inputs, "contact-free recording (--ground-truth zero)")
+    missing = {"topic": run.external_torque is None and "/ground_truth/external_joint_torque",
+               "ft": run.wrench is None and "a wrist wrench topic", "reference": reference is None and "--reference-bag"}
+    if missing.get(kind):
+        raise BagError(f"--ground-truth {kind} needs {missing[kind]}, which this replay does not have")
+    use_topic, use_ft = kind in ("auto", "topic"), kind in ("auto", "ft")
     wrench = None
     if run.wrench is not None:
         measured = np.hstack((run.wrench.force, run.wrench.torque))
@@ -76,16 +116,16 @@ def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, i
         frame = run.wrench.frame_id
         wrench = np.array([robot.wrench_at_end_effector(q, frame, w, config.wrench.frame) if np.isfinite(w).all()
                            else np.full(6, np.nan) for q, w in zip(inputs.q, at_sensor)])
-    if run.external_torque is not None:
+    if run.external_torque is not None and use_topic:
         tau = _align(inputs.stamp, run.external_torque.stamp, run.external_torque.effort)
         if wrench is None:    # no wrist sensor: the true torque through the same pseudo-inverse (eq. 39)
             wrench = _wrench_of_torque(robot, config, inputs.q, tau)
         return GroundTruth("true external joint torque (/ground_truth/external_joint_torque)", tau, wrench)
-    if run.wrench is not None:
+    if run.wrench is not None and use_ft:
         tau = np.array([robot.sensor_torque(q, run.wrench.frame_id, w) if np.isfinite(w).all()
                         else np.full(robot.n, np.nan) for q, w in zip(inputs.q, at_sensor)])
         return GroundTruth(f"wrist F/T through J^T w (v2 eq. 37, frame {run.wrench.frame_id})", tau, wrench)
-    if reference is not None:
+    if reference is not None and kind in ("auto", "reference"):
         elapsed = inputs.stamp - inputs.stamp[0]
         free = _align(elapsed, reference.stamp - reference.stamp[0], reference.tau_m)
         tau = free - inputs.tau_m
@@ -149,10 +189,12 @@ def write_estimates(path: Path, run: RecordedRun, inputs: EstimatorInputs, resul
 
 def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path, observers: Sequence[str],
            reference_bag: Path | None = None, oracle: ResidualPredictor | None = None, write_bag: bool = True,
-           plots: bool = True, log=print) -> dict:
+           plots: bool = True, log=print, truth_kind: str = "auto",
+           trim: tuple[float, float] = (0.0, 0.0)) -> dict:
     """Replay ``bag`` through ``observers``; write outputs under ``out``; return metrics.json's content.
 
-    ``oracle``: the simulator's true residual (``kvark_ros.sim.plant.OracleResidual``), for the oracle.
+    ``oracle``: the simulator's true residual (``kvark_ros.sim.plant.OracleResidual``), for the oracle;
+    ``truth_kind``: one of ``GROUND_TRUTHS``; ``trim``: seconds dropped at the start and at the end.
     """
     for name in observers:           # fail on a model or oracle that cannot serve an observer before decoding
         make_observer(name, trained, config.filter, oracle)
@@ -166,7 +208,9 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
         reference = estimator_inputs(read_run(reference_bag, config.joint_names), config.input.command_max_age,
                                      path=str(reference_bag))
     robot = RobotModel.from_config(config, trained.augmentation)
-    truth = ground_truth(robot, config, run, inputs, reference)
+    truth = ground_truth(robot, config, run, inputs, reference, truth_kind)
+    if trim != (0.0, 0.0):     # after the ground truth: a reference run is aligned from the recordings' starts
+        inputs, truth = _take(inputs, truth, trimmed_rows(inputs.stamp, *trim))
     decode_seconds = time.perf_counter() - started
     results = []
     for name in observers:
@@ -176,7 +220,7 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
     duration = float(inputs.stamp[-1] - inputs.stamp[0])
     metrics = {
         "bag": str(bag),
-        "ground_truth": truth.kind if truth is not None else "none",
+        "ground_truth": truth.kind if truth is not None else "none", "trim_s": [float(v) for v in trim],
         "samples": len(inputs), "duration_s": round(duration, 3), "torque_source": inputs.torque_source,
         "dropped_samples": inputs.dropped, "decode_seconds": round(decode_seconds, 3),
         "observers": {r.name: observer_metrics(r, truth, inputs.stamp) for r in results},
@@ -206,6 +250,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help=f"comma-separated observers or 'all' ({', '.join(OBSERVER_NAMES)}); default kvark")
     parser.add_argument("--reference-bag", help="the same motion without the load, for two-run ground truth")
     parser.add_argument("--plant", help="simulator plant file (needed by the oracle observer)")
+    parser.add_argument("--ground-truth", choices=GROUND_TRUTHS, default="auto",
+                        help="true external torque: auto (default: the bag's /ground_truth topic, else its wrist "
+                             "F/T, else --reference-bag), zero (the robot touched nothing: every estimate is "
+                             "error), or one of topic, ft, reference (an error if the data lack it)")
+    parser.add_argument("--trim", nargs=2, type=float, default=(0.0, 0.0), metavar=("START", "END"),
+                        help="drop the first START and the last END seconds of the bag (a start-up, a stop)")
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--no-bag", action="store_true", help="skip writing the estimates bag")
     parser.set_defaults(run=run)
@@ -229,6 +279,6 @@ def run(args: argparse.Namespace) -> int:
               "model is augmented", flush=True)
     replay(config, trained, Path(args.bag), Path(args.out), observers,
            Path(args.reference_bag) if args.reference_bag else None, oracle, write_bag=not args.no_bag,
-           log=lambda line: print(line, flush=True))
+           log=lambda line: print(line, flush=True), truth_kind=args.ground_truth, trim=tuple(args.trim))
     print(f"[replay] wrote {args.out}/metrics.json and report.md", flush=True)
     return 0

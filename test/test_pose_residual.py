@@ -94,7 +94,7 @@ def test_the_selection_keeps_q_only_where_the_held_out_likelihood_says_so() -> N
     assert kinds[0] == "qd_q", lines
     # the q-term is 0.6 N·m RMS against 0.02 N·m noise: q̇ alone loses by nats, far beyond MIN_NLL_GAIN
     assert scores["qd_q"][0] > scores["qd"][0] + 1.0
-    assert set(scores) == {"qd", "qd_q", "qd_g"} and "→" in lines[0]
+    assert set(scores) == {"qd", "qd_q", "qd_g"} and "→" in lines[-1]     # progress lines first, then the choice
     assert choose_inputs(data, "qd_g", seed=0, log=lines.append) == (("qd_g", "qd_g"), {})
     with pytest.raises(ValueError, match="residual inputs must be one of"):
         choose_inputs(data, "position", seed=0, log=lines.append)

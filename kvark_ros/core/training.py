@@ -154,7 +154,8 @@ def choose_inputs(data: TrainingData, mode: str, seed: int,
     tail = np.concatenate([np.arange(len(seg.stamp)) >= (1.0 - SELECTION_HOLDOUT) * len(seg.stamp)
                            for seg in data.segments])
     scores: dict[str, list[float]] = {}
-    for kind in INPUT_KINDS:
+    for step, kind in enumerate(INPUT_KINDS, start=1):
+        log(f"[train] choosing residual inputs: fitting {kind} on every joint ({step}/{len(INPUT_KINDS)})")
         kinds = (kind,) * n
         z = second_inputs(kinds, data.q, data.g)
         model = fit_kmp(data.qd[~tail], z[~tail], data.tau_r[~tail], kinds, N_COMPONENTS, _n_support(kinds), seed)

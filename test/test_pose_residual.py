@@ -98,3 +98,12 @@ def test_the_selection_keeps_q_only_where_the_held_out_likelihood_says_so() -> N
     assert choose_inputs(data, "qd_g", seed=0, log=lines.append) == (("qd_g", "qd_g"), {})
     with pytest.raises(ValueError, match="residual inputs must be one of"):
         choose_inputs(data, "position", seed=0, log=lines.append)
+
+
+def test_lambda2_at_the_grid_edge_is_a_warning_that_says_which_way() -> None:
+    from kvark_ros.core.training import LAMBDA2_GRID, lambda2_warnings
+    lambda2 = np.array([LAMBDA2_GRID[0], 10.0, LAMBDA2_GRID[-1]])
+    lines = lambda2_warnings(lambda2, np.array([0.80, 0.95, 0.99]), ("j1", "j2", "j3"))
+    assert len(lines) == 2
+    assert "j1" in lines[0] and "too small" in lines[0] and "0.80" in lines[0]   # widest variance, still covers 80 %
+    assert "j3" in lines[1] and "too large" in lines[1]                          # narrowest variance, covers 99 %

@@ -133,6 +133,19 @@ def calibrate_lambda2(model: KMPResidualModel, qd: np.ndarray, tau_r: np.ndarray
     return model.with_hyperparameters(hyper), coverage[best, np.arange(model.n_joints)]
 
 
+def lambda2_warnings(lambda2: np.ndarray, coverage: np.ndarray, joint_names: Sequence[str]) -> list[str]:
+    """A warning line per joint whose calibrated λ₂ (n,) sits at an edge of ``LAMBDA2_GRID``: its held-out
+    coverage (n,) missed ``COVERAGE_TARGET`` (at the grid's low end the variance N σ_f²/λ₂ is at its largest and
+    still too small; at the high end at its smallest and still too large)."""
+    lines = []
+    for j in np.flatnonzero((lambda2 <= LAMBDA2_GRID[0]) | (lambda2 >= LAMBDA2_GRID[-1])):
+        verdict = "too large" if coverage[j] > COVERAGE_TARGET else "too small"
+        lines.append(f"[train] warning: λ2 of {joint_names[j]} is at the edge of its grid ({lambda2[j]:.3g}): "
+                     f"held-out coverage {coverage[j]:.2f}, not {COVERAGE_TARGET:.2f}, so its KMP variance is "
+                     f"{verdict} for this data; record more varied motion or check this joint's residual")
+    return lines
+
+
 def _n_support(kinds: Sequence[str]) -> int:
     return N_SUPPORT if all(kind == "qd" for kind in kinds) else N_SUPPORT_2D
 
@@ -199,6 +212,8 @@ def train_model(robot: RobotModel, robot_name: str, segments: Sequence[Estimator
         f"λ1 {np.round(kmp.hyper.lambda1, 4).tolist()}")
     kmp, coverage = calibrate_lambda2(kmp, data.qd[held_out], data.tau_r[held_out], q_held, g_held)
     log(f"[train] KMP λ2 {kmp.hyper.lambda2.tolist()}; held-out 95% coverage {np.round(coverage, 3).tolist()}")
+    for line in lambda2_warnings(kmp.hyper.lambda2, coverage, robot.joint_names):
+        log(line)
     tuning = _tuning(data, lambda seg, dyn: kmp.predict_batch(seg.qd, seg.q, dyn.g)[0])
     log("[train] K-VARK filter tuned by covariance matching")
     qd_held, tau_held = data.qd[held_out], data.tau_r[held_out]

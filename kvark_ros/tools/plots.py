@@ -65,17 +65,25 @@ def plot_training(robot: RobotModel, trained: TrainedModel, segments: Sequence[E
     return [path]
 
 
+HIGHLIGHTED = "kvark"     # the estimate drawn above the other observers
+
+
 def plot_time_histories(stamp: np.ndarray, truth: np.ndarray | None, estimates: Mapping[str, np.ndarray],
                         labels: Sequence[str], ylabel: str, path: Path,
                         stddev: Mapping[str, np.ndarray] | None = None) -> Path:
-    """Truth and each observer's estimate over time, one panel per component (joint or axis)."""
+    """Truth and each observer's estimate over time, one panel per component (joint or axis).
+
+    Layered so that what people look for stays visible: the baselines thin and underneath, K-VARK above them,
+    the ground truth on top (a noisy residual-free observer drawn last would hide both)."""
     fig, axes = _grid(len(labels))
     t = stamp - stamp[0]
     for j, ax in enumerate(axes[: len(labels)]):
         if truth is not None:
-            ax.plot(t, truth[:, j], color="k", lw=1.5, label="ground truth")
+            ax.plot(t, truth[:, j], color="k", lw=1.5, label="ground truth", zorder=5)
         for name, values in estimates.items():
-            line, = ax.plot(t, values[:, j], lw=0.8, label=name)
+            best = name == HIGHLIGHTED
+            line, = ax.plot(t, values[:, j], lw=1.2 if best else 0.6, alpha=1.0 if best else 0.7,
+                            zorder=4 if best else 2, label=name)
             if stddev is not None and name in stddev:
                 ax.fill_between(t, values[:, j] - 1.96 * stddev[name][:, j], values[:, j] + 1.96 * stddev[name][:, j],
                                 color=line.get_color(), alpha=0.15)

@@ -53,7 +53,8 @@ def test_a_lighter_tool_is_accepted_and_an_impossible_one_refused(config, robot)
     jid, a_map = flange_parameter_map(robot)
     link = robot.model.inertias[jid].toDynamicParameters()
     lighter = np.linalg.solve(a_map, -0.2 * link)            # in the flange frame
-    augmented = RobotModel.from_config(config, parse_augmentation(_augmentation_text(config, lighter), config.joint_names))
+    text = _augmentation_text(config, lighter)
+    augmented = RobotModel.from_config(config, parse_augmentation(text, config.joint_names))
     np.testing.assert_allclose(augmented.model.inertias[jid].toDynamicParameters(), 0.8 * link, atol=1e-9)
     impossible = np.linalg.solve(a_map, -1.2 * link)
     with pytest.raises(RobotModelError, match="physically inconsistent.*mass"):

@@ -21,7 +21,8 @@ def _motion(seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _residual(q: np.ndarray, qd: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Joint 1: friction in q̇ plus a gravity-like sin(q) term of 1 N·m; joint 2: friction only. Noise 0.02 N·m (0.05 × 0.4)."""
+    """Joint 1: friction in q̇ plus a gravity-like sin(q) term of 1 N·m; joint 2: friction only.
+    Noise 0.02 N·m (0.05 × 0.4)."""
     tau = 0.3 * np.tanh(qd / 0.05) + 0.05 * rng.standard_normal(qd.shape) * 0.4
     tau[:, 0] += np.sin(q[:, 0])
     return tau

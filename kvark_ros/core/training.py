@@ -5,7 +5,8 @@ differentiation since recordings carry none; with a model augmentation from ``kv
 τ_EL is the augmented model's torque and the augmentation is stored with the model), GMM → GMR →
 KMP with the length scale and λ₁ from a GP marginal-likelihood fit and λ₂ calibrated on held-out
 samples (paper v2 §V-B), each joint's inputs (q̇ alone, or with q or the gravity torque g(q),
-docs/method.md §3.7) chosen by the log-likelihood on the end of every recording, static filter covariances by covariance matching (v2 §V-D), the
+docs/method.md §3.7) chosen by the log-likelihood on the end of every recording, static filter
+covariances by covariance matching (v2 §V-D), the
 baselines' residual models and the momentum observers' noise levels. The robot model is
 evaluated once per sample (``segment_dynamics``) and reused by every step.
 """

@@ -199,7 +199,8 @@ def _bad_bodies(fitter: Fitter, terms: Sequence[Term], theta: np.ndarray) -> lis
     physically impossible."""
     bad, pos = [], 0
     for index, term in enumerate(terms):
-        bad += [(index, body, problem) for body, problem in _inconsistent_bodies(fitter, term, theta[pos:pos + term.size])]
+        found = _inconsistent_bodies(fitter, term, theta[pos:pos + term.size])
+        bad += [(index, body, problem) for body, problem in found]
         pos += term.size
     return bad
 
@@ -223,7 +224,8 @@ def _consistent(fitter: Fitter, terms: Sequence[Term], *fit: np.ndarray) -> tupl
             scale = fitter.prior_scale[name].copy()
             block = slice(0, 10) if name == "payload" else slice(10 * body, 10 * body + 10)
             first = fitter.first_prior[name][block]
-            scale[block] = np.where(np.isfinite(scale[block]), 0.5 * scale[block], first)   # ∞ stays ∞ where first is
+            # halved where finite; where ∞, the first prior (which may itself be ∞: that parameter stays free)
+            scale[block] = np.where(np.isfinite(scale[block]), 0.5 * scale[block], first)
             fitter.prior_scale[name] = scale
         fit = fitter.fit(list(terms))
     return fit
@@ -506,7 +508,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                         help="prior of drive_gain: |1 − g| ≤ X (default 0.1; torque-sensing and calibrated "
                              "current-based drives)")
     parser.add_argument("--max-joint-offset", type=float, default=float(np.degrees(Priors.max_joint_offset)),
-                        metavar="DEG", help="prior of joint_offset: |δ| ≤ DEG degrees (default 1; absolute encoders)")
+                        metavar="DEG",
+                        help="prior of joint_offset: |δ| ≤ DEG degrees (default 1; absolute encoders)")
     parser.add_argument("--no-plots", action="store_true", help="do not write plots")
     parser.set_defaults(run=run)
 

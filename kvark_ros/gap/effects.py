@@ -255,7 +255,7 @@ def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None) -
             jac[0, 0], jac[1:4, 0], jac[4:, 1:] = 1.0, term.fixed_com, np.eye(6)
             cov = None if cov is None else jac @ cov @ jac.T
         return payload_parameters(term.full_theta(theta), cov)
-    if term.name == "link_inertia":     # per link (joint frame): Δm kg, Δ(m c) kg·m, ΔI kg·m² about the joint origin
+    if term.name == "link_inertia":     # per link, joint frame: Δm kg, Δ(m c) kg·m, ΔI kg·m² about the origin
         values, widths = theta.reshape(-1, 10), half.reshape(-1, 10)
         return ({"mass_change": values[:, 0].tolist(), "first_moment_change": values[:, 1:4].tolist(),
                  "inertia_change": values[:, 4:].tolist()},

@@ -35,7 +35,7 @@ class Fitter:
         return self._cache[key]
 
     def _normal_blocks(self, one: Term, other: Term) -> np.ndarray:
-        """Weighted Gram block Aᵢᵀ W² Aⱼ of two terms' training regressors, cached: hundreds of fits reuse them."""
+        """Weighted Gram block Aᵢᵀ W² Aⱼ of two terms' training regressors, cached (hundreds of fits reuse it)."""
         key = ("gram", self._key(one), self._key(other))
         if key not in self._cache:
             a, b = self.design(one)[0], self.design(other)[0]
@@ -55,8 +55,8 @@ class Fitter:
         """(θ, covariance, train residual, held-out residual).
 
         Bounded weighted least squares on the normal equations: with G = AᵀW²A (+ the priors' 1/σ² on the
-        diagonal) = RᵀR and c = AᵀW²b, ‖W(Aθ − b)‖² + ‖θ/σ‖² = ‖Rθ − R⁻ᵀc‖² + const, so BVLS solves a p × p problem
-        built from cached blocks instead of a QR of the stacked T·n × p design.
+        diagonal) = RᵀR and c = AᵀW²b, ‖W(Aθ − b)‖² + ‖θ/σ‖² = ‖Rθ − R⁻ᵀc‖² + const, so BVLS solves a
+        p × p problem built from cached blocks instead of a QR of the stacked T·n × p design.
         """
         if not terms:
             return np.zeros(0), None, self.train.gap.copy(), self.held.gap.copy()

@@ -156,9 +156,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--quick", action="store_true", help="less data: finishes in a few minutes")
     parser.add_argument("--seed", type=int, default=0, help="offset of every simulation seed (default 0)")
     parser.add_argument("--observers", default="all", help="comma-separated observers or 'all' (default)")
-    parser.add_argument("--plant", help="simulate this plant file instead of kvark_ros/sim/plants/<robot>_realistic.yaml "
-                                        "(link inertia and tool errors, stiction, drifts; <robot>_default.yaml is "
-                                        "friction only). Delete DIR/bags when changing it: bags are reused")
+    parser.add_argument("--plant", help="simulate this plant file instead of "
+                                        "kvark_ros/sim/plants/<robot>_realistic.yaml (link inertia and tool errors, "
+                                        "stiction, drifts; <robot>_default.yaml is friction only). Delete DIR/bags "
+                                        "when changing it: bags are reused")
     parser.add_argument("--augment", action="store_true",
                         help=f"also diagnose the training bags, train on the augmented model and replay "
                              f"{', '.join(AUGMENTED_OBSERVERS)} with it (report section 'Model augmentation')")

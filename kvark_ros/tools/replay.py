@@ -105,7 +105,8 @@ def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, i
     if kind == "zero":
         return zero_truth(inputs, "contact-free recording (--ground-truth zero)")
     missing = {"topic": run.external_torque is None and "/ground_truth/external_joint_torque",
-               "ft": run.wrench is None and "a wrist wrench topic", "reference": reference is None and "--reference-bag"}
+               "ft": run.wrench is None and "a wrist wrench topic",
+               "reference": reference is None and "--reference-bag"}
     if missing.get(kind):
         raise BagError(f"--ground-truth {kind} needs {missing[kind]}, which this replay does not have")
     use_topic, use_ft = kind in ("auto", "topic"), kind in ("auto", "ft")

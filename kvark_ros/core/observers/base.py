@@ -142,7 +142,8 @@ class Observer(Stateful, ABC):
 
     @abstractmethod
     def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,
-             u_prev: np.ndarray, q: np.ndarray | None = None, g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+             u_prev: np.ndarray, q: np.ndarray | None = None,
+             g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
         """Advance one sample.
 
         Args:

@@ -132,7 +132,8 @@ class KVARKFilter(Observer):
         return (p - p_prev) / dt - u_prev + mu
 
     def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,
-             u_prev: np.ndarray, q: np.ndarray | None = None, g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+             u_prev: np.ndarray, q: np.ndarray | None = None,
+             g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         variant = self.variant
         mu, var_star = self.residual.predict(qd, q, g) if self.needs else self.residual.predict(qd)  # 22-23
         self.prediction = mu, var_star

@@ -94,7 +94,8 @@ class KVARKMomentumFilter(KFMomentumObserver):
             self.onset.reset()
 
     def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,
-             u_prev: np.ndarray, q: np.ndarray | None = None, g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+             u_prev: np.ndarray, q: np.ndarray | None = None,
+             g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         variant = self.variant
         if self.p_hat is None:
             self.p_hat = p_prev

@@ -265,7 +265,8 @@ class MomentumObserver(Observer):
         self.r = np.zeros(self.n)                                      # r_0 = 0 (p_0 = first momentum)
 
     def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,
-             u_prev: np.ndarray, q: np.ndarray | None = None, g: np.ndarray | None = None) -> tuple[np.ndarray, None]:
+             u_prev: np.ndarray, q: np.ndarray | None = None,
+             g: np.ndarray | None = None) -> tuple[np.ndarray, None]:
         if self.exact:
             y = (p - p_prev) / dt - u_prev                             # (M2)
             self.r = self.r + (1.0 - np.exp(-dt * self.gain)) * (y - self.r)   # (M3)
@@ -311,7 +312,8 @@ class ExtendedStateObserver(Observer):
         self.tau = np.zeros(self.n)
 
     def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,
-             u_prev: np.ndarray, q: np.ndarray | None = None, g: np.ndarray | None = None) -> tuple[np.ndarray, None]:
+             u_prev: np.ndarray, q: np.ndarray | None = None,
+             g: np.ndarray | None = None) -> tuple[np.ndarray, None]:
         e = np.zeros(self.n) if self.p_hat is None else p_prev - self.p_hat
         wh = dt * self.omega
         E = np.exp(-wh)
@@ -393,7 +395,8 @@ class KFMomentumObserver(Observer):
         return self._q
 
     def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,
-             u_prev: np.ndarray, q: np.ndarray | None = None, g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+             u_prev: np.ndarray, q: np.ndarray | None = None,
+             g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         if self.p_hat is None:
             self.p_hat = p_prev
         p_pred = self.p_hat + dt * (u_prev + self.tau)                 # (K1)

@@ -284,10 +284,10 @@ class KMPResidualModel:
             self._weights[j, 0] = hyper.sigma_f2[j] * alpha
             self._weights[j, 1:] = hyper.sigma_f2[j] * chol_inv
         self._weights.setflags(write=False)
-        # Far-field floor of two-input joints (predict): L_K⁻¹ with L_K L_Kᵀ = K/σ_f² + jitter I, the GP conditioned
-        # noise-free on all support points. On a q̇ grid the nearest point bounds it tightly; in a plane k-means
-        # support points sit further apart than the length scales, and the nearest-point bound would dwarf the
-        # model's real error (measured: σ 0.29 N·m where the error was 0.05).
+        # Far-field floor of two-input joints (predict): L_K⁻¹ with L_K L_Kᵀ = K/σ_f² + jitter I, the GP
+        # conditioned noise-free on all support points. On a q̇ grid the nearest point bounds it tightly; in a
+        # plane k-means support points sit further apart than the length scales, and the nearest-point bound
+        # would dwarf the model's real error (measured: σ 0.29 N·m where the error was 0.05).
         self._two_input = uses_z
         self._floor_weights = None
         if uses_z.any():
@@ -300,7 +300,8 @@ class KMPResidualModel:
             self._floor_weights.setflags(write=False)
 
     def _far_field_floor(self, e: np.ndarray) -> np.ndarray:
-        """σ_f²(1 − c²), c the largest unit kernel value (…, n, N) → (…, n); for two-input joints σ_f²(1 − ‖L_K⁻¹e‖²)."""
+        """σ_f²(1 − c²), c the largest unit kernel value of e (…, n, N), → (…, n); for two-input joints
+        σ_f²(1 − ‖L_K⁻¹e‖²)."""
         nearest = e.max(axis=-1)
         floor = self._sigma_f2 * (1.0 - nearest * nearest)
         if self._floor_weights is not None:

@@ -559,6 +559,8 @@ def test_cli_replay_of_free_motion_with_zero_truth_and_a_trim(bags, cli_model, t
     assert main(["replay", "--config", str(CONFIG), "--model", str(cli_model), "--bag", str(bags.mcap),
                  "--observers", "kvark,momentum", "--ground-truth", "zero", "--trim", "0.5", "0.25",
                  "--out", str(out), "--no-bag"]) == 0
+    printed = capsys.readouterr().out          # which URDF and model, and what the model was trained on
+    assert f"model {cli_model}," in printed and "trained on excitation_mcap, excitation_sqlite" in printed
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["ground_truth"].startswith("zero") and metrics["trim_s"] == [0.5, 0.25]
     # 1.5 s of the bag kept at 500 Hz, ± one sample at each cut

@@ -541,6 +541,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"[diagnose] relative to the model augmented by {base.source}: {', '.join(base.effect_names)}",
               flush=True)
     robot = RobotModel.from_config(config, base)
+    print(f"[diagnose] URDF {config.urdf}", flush=True)
     segments = load_recordings(args.bags, config.joint_names, config.input.command_max_age, "diagnose")
     log = lambda line: print(line, flush=True)   # noqa: E731
     if args.max_gain_error <= 0 or args.max_joint_offset <= 0:

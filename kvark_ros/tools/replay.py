@@ -264,7 +264,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    trained = load_model(args.model or config.model_dir, config.joint_names, urdf_sha256(config.urdf))
+    model_dir = args.model or config.model_dir
+    trained = load_model(model_dir, config.joint_names, urdf_sha256(config.urdf))
+    source = trained.info.get("source") or ", ".join(
+        str(bag.get("name", bag) if isinstance(bag, dict) else bag) for bag in trained.info.get("bags") or []) or "?"
+    which = "" if args.model else " (the config's model_dir)"
+    print(f"[replay] URDF {config.urdf}; model {model_dir}{which}, trained on {source}", flush=True)
     oracle = None
     if args.plant:
         from kvark_ros.sim.plant import OracleResidual, load_plant

@@ -67,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     source = config.model_augmentation if args.augmentation is None else args.augmentation
     augmentation = load_augmentation(source, config.joint_names) if source else None
     robot = RobotModel.from_config(config, augmentation)
+    print(f"[train] URDF {config.urdf}", flush=True)
     if augmentation is not None:
         print(f"[train] model augmented by {source}: {', '.join(augmentation.effect_names) or 'no effects'}",
               flush=True)

@@ -277,8 +277,8 @@ def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None) -
 
 
 def payload_parameters(theta: np.ndarray, cov: np.ndarray | None) -> tuple[dict, dict]:
-    """Mass, CoM (flange frame) and inertia about the CoM ``[ixx, iyy, izz, ixy, ixz, iyz]``;
-    physical consistency: mass > 0 and positive semi-definite inertia about the CoM."""
+    """Mass, CoM (flange frame) and inertia about the CoM ``[ixx, iyy, izz, ixy, ixz, iyz]`` of a payload change.
+    Its physical consistency is that of the flange link it changes (``plausibility.flange_change``)."""
     m, h = float(theta[0]), np.asarray(theta[1:4], dtype=float)
     com = h / m
     ixx, ixy, iyy, ixz, iyz, izz = theta[4:10]
@@ -288,9 +288,7 @@ def payload_parameters(theta: np.ndarray, cov: np.ndarray | None) -> tuple[dict,
     params = {"mass": m, "com": com.tolist(),
               "inertia": [float(v) for v in (i_com[0, 0], i_com[1, 1], i_com[2, 2], i_com[0, 1], i_com[0, 2],
                                              i_com[1, 2])],
-              "inertia_eigenvalues": eig.tolist(),
-              "physically_consistent": bool(m > 0 and eig.min() >= -1e-3 * max(1.0, m))}
-    # ≥ −1e-3 kg·m²·(m/kg): a point mass's inertia about its CoM is 0, which noise makes slightly indefinite
+              "inertia_eigenvalues": eig.tolist()}
     ci: dict[str, Any] = {}
     if cov is not None:
         ci["mass"] = 1.96 * float(np.sqrt(max(cov[0, 0], 0.0)))

@@ -17,6 +17,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from kvark_ros.core.inputs import EstimatorInputs
+from kvark_ros.core.payload import inertia_problem
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.gap.effects import Priors, Term, signals
 
@@ -60,12 +61,13 @@ def plausibility_warnings(terms: Sequence[Term], thetas: Sequence[np.ndarray], p
 
 def flange_change(flange: np.ndarray, flange_map: np.ndarray, theta: np.ndarray) -> dict:
     """The payload effect θ (10,) in the flange frame as a change of the flange link (``flange``: its URDF
-    parameters, joint frame; ``flange_map``: flange → joint frame): kind, mass change and total mass."""
+    parameters, joint frame; ``flange_map``: flange → joint frame): kind, mass change, total mass and whether the
+    changed link is physically consistent (``core.payload.inertia_problem``, the check the selection applies)."""
     total = flange + flange_map @ theta
     kind = ("tool mismatch: the robot's flange link is lighter than the URDF's (its tool is not the URDF's)"
             if theta[0] < 0.0 else "unmodelled payload or tool at the flange")
     return {"kind": kind, "mass_change": float(theta[0]), "flange_link_mass_urdf": float(flange[0]),
-            "flange_link_mass_total": float(total[0])}
+            "flange_link_mass_total": float(total[0]), "physically_consistent": inertia_problem(total) is None}
 
 
 def raw_gap(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float, terms: Sequence[Term],

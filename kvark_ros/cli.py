@@ -13,7 +13,7 @@ from kvark_ros.core.robot_model import RobotModelError
 from kvark_ros.gap import diagnose
 from kvark_ros.io import BagError
 from kvark_ros.sim.plant import PlantError
-from kvark_ros.tools import bench, benchmark, config, replay, soak, train
+from kvark_ros.tools import bench, benchmark, config, importer, init, replay, soak, train
 
 USER_ERRORS = (AugmentationError, ConfigError, ResidualModelError, RobotModelError, BagError, ObserverError, PlantError,
                FileNotFoundError)
@@ -38,6 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_parser(subparsers)
     soak.add_parser(subparsers)
     config.add_parser(subparsers)
+    init.add_parser(subparsers)
+    importer.add_parser(subparsers)
     return parser
 
 

@@ -4,18 +4,20 @@ The pairing is the live node's (``kvark_ros.core.pairing.StreamPairer``), fed th
 time order: joint states at their header stamps, commands at their log time, a command after the
 state it shares a time with. A command therefore answers the newest joint state stamped at or
 before it, and a state without one takes the newest earlier command no older than
-``max_command_age``; the others are dropped and counted. A bag without commands falls back to the
-measured effort in ``joint_states``.
+``max_command_age``; the others are dropped and counted. ``input.torque_source: joint_states_effort``
+takes the joint states' effort instead, and a bag without commands falls back to it.
 """
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
+from kvark_ros.core.config import EstimatorConfig
 from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.pairing import RESET, Sample, StreamPairer
-from kvark_ros.io import BagError, RecordedRun, read_run
+from kvark_ros.io import BagError, RecordedRun, TopicNames, read_run
 
 
 def _paired(run: RecordedRun, max_command_age: float) -> list[Sample]:
@@ -39,31 +41,47 @@ def _paired(run: RecordedRun, max_command_age: float) -> list[Sample]:
     return samples
 
 
-def estimator_inputs(run: RecordedRun, max_command_age: float = 0.01, path: str = "bag") -> EstimatorInputs:
-    """Pair joint states with commands (see module docstring)."""
+def estimator_inputs(run: RecordedRun, max_command_age: float = 0.01, path: str = "bag",
+                     torque_source: str = "effort_commands") -> EstimatorInputs:
+    """Pair joint states with commands (module docstring); ``torque_source`` is ``input.torque_source``.
+
+    ``joint_states_effort`` takes the joint states' effort even when the bag records commands. The two
+    command sources take the command topic (Float64MultiArray or JointState alike); a bag without one
+    falls back to the joint states' effort, and ``torque_source`` of the result says so.
+    """
     states = run.joint_states
-    if run.commands is not None and len(run.commands.stamp) > 0:
+    if torque_source != "joint_states_effort" and run.commands is not None and len(run.commands.stamp) > 0:
         samples = _paired(run, max_command_age)
         n = states.position.shape[1]
         stamp = np.array([s.stamp for s in samples], dtype=np.float64)
         q, qd, tau_m = (np.array([getattr(s, name) for s in samples], dtype=np.float64).reshape(-1, n)
                         for name in ("q", "qd", "tau_m"))
-        return EstimatorInputs(stamp, q, qd, tau_m, "effort_commands", len(states.stamp) - len(samples))
+        return EstimatorInputs(stamp, q, qd, tau_m, "effort_commands", len(states.stamp) - len(samples),
+                               run.simulated)
     fresh = np.isfinite(states.effort).all(axis=1)
     if not fresh.any():
-        raise BagError(f"{path}: no effort commands and no measured effort in joint_states; "
-                       "record the commanded torque topic (effort_commands)")
+        fix = ("set input.torque_source to effort_commands and record the commanded torque"
+               if torque_source == "joint_states_effort" else "record the commanded torque topic (effort_commands)")
+        raise BagError(f"{path}: no usable τ_m: no effort commands and no measured effort in joint_states; {fix}")
+    label = ("joint_states effort" if torque_source == "joint_states_effort"
+             else "joint_states effort (the bag has no effort commands)")
     return EstimatorInputs(states.stamp[fresh], states.position[fresh], states.velocity[fresh],
-                           states.effort[fresh], "joint_states.effort", int((~fresh).sum()))
+                           states.effort[fresh], label, int((~fresh).sum()), run.simulated)
 
 
-def load_recordings(bags: Sequence[str], joint_names: Sequence[str], max_command_age: float,
-                    tag: str) -> list[EstimatorInputs]:
+def read_inputs(bag: str | Path, config: EstimatorConfig) -> tuple[RecordedRun, EstimatorInputs]:
+    """The run of ``bag`` read with the config's topics and joints, and its estimator inputs from the config's
+    ``input.torque_source`` (what ``kvark train``, ``replay``, ``diagnose`` and ``benchmark`` read)."""
+    run = read_run(bag, config.joint_names, TopicNames.from_config(config.input))
+    return run, estimator_inputs(run, config.input.command_max_age, str(bag), config.input.torque_source)
+
+
+def load_recordings(bags: Sequence[str], config: EstimatorConfig, tag: str) -> list[EstimatorInputs]:
     """Estimator inputs of every bag, with one status line each (train and diagnose read bags this way)."""
     segments = []
     for bag in bags:
-        inputs = estimator_inputs(read_run(bag, tuple(joint_names)), max_command_age, path=str(bag))
+        inputs = read_inputs(bag, config)[1]
         print(f"[{tag}] {bag}: {len(inputs)} samples (τ_m from {inputs.torque_source}, "
-              f"{inputs.dropped} dropped)", flush=True)
+              f"{inputs.dropped} dropped{', simulated' if inputs.simulated else ''})", flush=True)
         segments.append(inputs)
     return segments

@@ -30,6 +30,8 @@ from kvark_ros.io.runs import (
     CommandSeries,
     JointStateSeries,
     RecordedRun,
+    SIMULATOR_SOURCE,
+    SOURCE_KEY,
     TopicNames,
     WrenchSeries,
     _error,
@@ -349,13 +351,17 @@ def read_run(
     (another publisher on the topic) are skipped; a missing joint is a BagError.
     Unlabelled Float64MultiArray commands are taken to be in ``joint_names``
     order. Optional topics that are absent or empty read as None. Header
-    stamps that are all zero fall back to the bag log time.
+    stamps that are all zero fall back to the bag log time. ``source`` is the
+    bag metadata's ``kvark_ros.source``; a bag without it that records the true
+    external torque is taken to come from the simulator (a robot cannot measure it).
     """
     wanted = None if joint_names is None else tuple(str(n) for n in joint_names)
     if wanted is not None and (not wanted or len(set(wanted)) != len(wanted)):
         raise _error(path, f"joint_names {list(wanted)} are empty or repeat", "fix the config")
     with _open_reader(path) as (given, reader):
         types = _topic_types(reader)
+        custom = getattr(getattr(getattr(reader, "storage", None), "metadata", None), "custom", None) or {}
+        source = str(custom.get(SOURCE_KEY, ""))
         if topics.joint_states not in types:
             raise _error(
                 given,
@@ -428,4 +434,6 @@ def read_run(
         commands=cmd.result() if isinstance(cmd, _Commands) else None,
         wrench=wr.result() if isinstance(wr, _Wrenches) else None,
         external_torque=ext.result(wanted) if isinstance(ext, _JointStates) else None,
+        source=source or (f"{SIMULATOR_SOURCE} (inferred: {topics.external_torque} recorded)"
+                          if isinstance(ext, _JointStates) else ""),
     )

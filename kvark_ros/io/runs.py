@@ -25,6 +25,8 @@ __all__ = [
     "CommandSeries",
     "JointStateSeries",
     "RecordedRun",
+    "SIMULATOR_SOURCE",
+    "SOURCE_KEY",
     "TopicNames",
     "WrenchSeries",
 ]
@@ -40,6 +42,10 @@ def _error(path: PathLike, problem: str, fix: str) -> BagError:
     return BagError(" ".join(text.split()))
 
 
+SOURCE_KEY = "kvark_ros.source"       # bag metadata custom_data key naming what wrote the bag
+SIMULATOR_SOURCE = "simulator"
+
+
 @dataclass(frozen=True)
 class TopicNames:
     """Topic names of a run; rename to match a recording."""
@@ -48,6 +54,16 @@ class TopicNames:
     effort_commands: str = "/effort_commands"
     wrench: str = "/ft_sensor/wrench"
     external_torque: str = "/ground_truth/external_joint_torque"
+
+    @classmethod
+    def from_config(cls, inputs: Any) -> "TopicNames":
+        """The config's ``input.*_topic`` keys as bag topics (a bag records absolute names: ``joint_states``
+        is ``/joint_states``)."""
+        def absolute(name: str) -> str:
+            return name if name.startswith("/") else f"/{name}"
+
+        return cls(absolute(inputs.joint_states_topic), absolute(inputs.effort_commands_topic),
+                   absolute(inputs.wrench_topic), absolute(inputs.external_torque_topic))
 
 
 def _as_matrix(value: Any, rows: int, cols: int, what: str) -> FloatArray:
@@ -141,6 +157,14 @@ class RecordedRun:
     commands: CommandSeries | None
     wrench: WrenchSeries | None = None
     external_torque: JointStateSeries | None = None
+    # What wrote the bag (its metadata's custom_data ``kvark_ros.source``): "simulator: <plant>", "import: <file>",
+    # or "" for a recording of a robot.
+    source: str = ""
+
+    @property
+    def simulated(self) -> bool:
+        """Whether the run comes from kvark's simulator (whose models must not be taken for a real robot's)."""
+        return self.source.startswith(SIMULATOR_SOURCE)
 
     def __post_init__(self) -> None:
         n = len(self.joint_states.names)

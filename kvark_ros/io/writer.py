@@ -30,7 +30,7 @@ from kvark_ros.io.common import (
     PathLike,
     _typestore,
 )
-from kvark_ros.io.runs import RecordedRun, TopicNames, _error
+from kvark_ros.io.runs import SOURCE_KEY, RecordedRun, TopicNames, _error
 
 __all__ = ["BagWriter", "write_run", "write_run_messages"]
 
@@ -73,8 +73,9 @@ class BagWriter:
     messages with a header the header stamp is also the bag log time.
     """
 
-    def __init__(self, path: PathLike, storage: str = "mcap", overwrite: bool = False) -> None:
+    def __init__(self, path: PathLike, storage: str = "mcap", overwrite: bool = False, source: str = "") -> None:
         self.path = Path(path)
+        self.source = source          # metadata custom_data kvark_ros.source ("" = none): what wrote the bag
         self._plugin = _parse_storage(storage, self.path)
         self.overwrite = overwrite
         self._check_target()
@@ -108,6 +109,8 @@ class BagWriter:
         # The bag directory inside tmpdir has the final name, so the storage
         # file is '<name>.mcap' / '<name>.db3' as ros2 bag tools expect.
         writer = Writer(tmpdir / self.path.name, version=_BAG_VERSION, storage_plugin=self._plugin)
+        if self.source:
+            writer.set_custom_data(SOURCE_KEY, self.source)
         try:
             writer.open()
         except BaseException:
@@ -273,13 +276,13 @@ def write_run(
     topics: TopicNames = TopicNames(),
     overwrite: bool = False,
 ) -> None:
-    """Write ``run`` as a bag at ``path`` (atomic; see BagWriter).
+    """Write ``run`` as a bag at ``path`` (atomic; see BagWriter); ``run.source`` goes into its metadata.
 
     Messages are interleaved in log-time order like a live recording. Commands
     are a Float64MultiArray in the run's joint order, labelled with the joint
     names so the order survives a reader that asks for another one.
     """
-    with BagWriter(path, storage=storage, overwrite=overwrite) as bag:
+    with BagWriter(path, storage=storage, overwrite=overwrite, source=run.source) as bag:
         write_run_messages(bag, run, topics)
 
 

@@ -39,7 +39,7 @@ import pinocchio as pin
 from tqdm import tqdm
 
 from kvark_ros.core.robot_model import RobotModel
-from kvark_ros.io import CommandSeries, JointStateSeries, RecordedRun, WrenchSeries
+from kvark_ros.io import SIMULATOR_SOURCE, CommandSeries, JointStateSeries, RecordedRun, WrenchSeries
 from kvark_ros.sim.controllers import (CartesianImpedanceController, CartesianTarget,
                                        JointTrackingController)
 from kvark_ros.sim.excitation import ExcitationLimits, optimise_excitation, random_trajectory
@@ -299,6 +299,7 @@ def run_simulation(setup: RobotSetup, plant: PlantSpec, controller: Controller, 
         commands=CommandSeries(stamp, rec["tau_m"].copy()),
         wrench=WrenchSeries(stamp, setup.flange_frame, sensor[:, :3].copy(), sensor[:, 3:].copy()),
         external_torque=JointStateSeries(stamp, names, zeros, zeros, rec["tau_ext"].copy()),
+        source=f"{SIMULATOR_SOURCE}: {label or setup.name}",
     )
     truth = GroundTruth(rec["q"], rec["qd"], rec["qdd"], rec["tau_ext"], sensor[:, :3].copy(),
                         sensor[:, 3:].copy(), rec["friction"], rec["drive"])

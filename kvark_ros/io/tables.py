@@ -1,0 +1,182 @@
+"""Numeric tables from robot logs (CSV or whitespace text, NPZ, MAT), read without ROS.
+
+A table is named numeric columns. A CSV or text log has one header row naming its columns (lines
+before it that start with ``#`` are comments); the delimiter is a comma when the header has one,
+else whitespace, and an empty CSV cell reads as NaN. NPZ and MAT files hold arrays by name: a vector
+is the column ``name``, a 2-D array a block whose column k is ``name:k``. Samples run along a 2-D
+array's longer axis, so MATLAB's (1, T) vectors and (k, T) matrices read like (T,) and (T, k) ones.
+Every failure a user can cause is one :class:`BagError` naming the file, the problem and the fix.
+"""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from kvark_ros.io.common import FloatArray, PathLike
+from kvark_ros.io.runs import _error
+
+__all__ = ["FORMATS", "Table", "read_table", "table_format"]
+
+FORMATS = ("csv", "npz", "mat")
+_SUFFIXES = {".csv": "csv", ".txt": "csv", ".log": "csv", ".tsv": "csv", ".dat": "csv", ".npz": "npz",
+             ".mat": "mat"}
+_SHOWN_NAMES = 40  # columns listed in a "missing column" error
+
+
+@dataclass(frozen=True)
+class Table:
+    """Named numeric columns of one file; ``skipped`` names arrays that are not numeric vectors or matrices."""
+
+    path: Path
+    columns: dict[str, FloatArray]
+    skipped: dict[str, str] = field(default_factory=dict)
+
+    def describe(self) -> str:
+        """The column names, shortened for an error message."""
+        names = list(self.columns)
+        shown = ", ".join(names[:_SHOWN_NAMES])
+        more = f" and {len(names) - _SHOWN_NAMES} more" if len(names) > _SHOWN_NAMES else ""
+        return f"{shown}{more}" if names else "no numeric columns"
+
+    def column(self, name: str, rows: int | None = None) -> FloatArray:
+        """The column ``name`` (``name:k`` for column k of a 2-D array), of ``rows`` samples if given; a
+        BagError naming what the file has."""
+        if name in self.columns:
+            found = self.columns[name]
+            if rows is not None and found.shape[0] != rows:
+                raise _error(self.path, f"column {name!r} has {found.shape[0]} samples, the time column {rows}",
+                             "map the columns of one recording")
+            return found
+        why = f" ({name} is {self.skipped[name]})" if name in self.skipped else ""
+        raise _error(self.path, f"has no column {name!r}{why}; its columns are {self.describe()}",
+                     "fix the column names in the mapping (--mapping or the field flags)")
+
+
+def table_format(path: PathLike, fmt: str | None = None) -> str:
+    """``fmt`` if given, else the format the file's suffix says (``csv`` for .csv/.txt/.log/.tsv/.dat)."""
+    if fmt is not None:
+        if fmt not in FORMATS:
+            raise _error(path, f"unknown format {fmt!r}", f"use one of {', '.join(FORMATS)}")
+        return fmt
+    suffix = Path(path).suffix.lower()
+    if suffix not in _SUFFIXES:
+        raise _error(path, f"unknown file format (suffix {suffix or 'none'!r})",
+                     f"pass --format {'|'.join(FORMATS)} (suffixes: {', '.join(_SUFFIXES)})")
+    return _SUFFIXES[suffix]
+
+
+def read_table(path: PathLike, fmt: str | None = None) -> Table:
+    """Read a CSV/text, NPZ or MAT file into a :class:`Table` (module docstring)."""
+    given = Path(path)
+    kind = table_format(given, fmt)
+    if not given.is_file():
+        raise _error(given, "no such file" if not given.exists() else "is not a file", "check the input path")
+    if kind == "csv":
+        return _read_text(given)
+    return _from_arrays(given, _load_npz(given) if kind == "npz" else _load_mat(given))
+
+
+def _read_text(path: Path) -> Table:
+    """A delimited text file with a header row (module docstring)."""
+    try:
+        lines = path.read_text().splitlines()
+    except UnicodeDecodeError as exc:
+        raise _error(path, "is not a text file", "pass --format npz or mat for binary files") from exc
+    except OSError as exc:
+        raise _error(path, f"cannot read it ({exc.strerror})", "check the file permissions") from exc
+    numbered = [(k + 1, line) for k, line in enumerate(lines) if line.strip() and not line.lstrip().startswith("#")]
+    if not numbered:
+        raise _error(path, "is empty (no header row)", "export the log with a header row naming the columns")
+    header_line, header = numbered[0]
+    delimiter = "," if "," in header else None
+    names = [name.strip().strip('"').strip("'") for name in header.split(delimiter)]
+    if not all(names):
+        raise _error(path, f"line {header_line}: the header has an empty column name", "name every column")
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise _error(path, f"line {header_line}: the header names {repeated[0]!r} twice", "name every column once")
+    body = numbered[1:]
+    if not body:
+        raise _error(path, "has a header but no data rows", "export the log with its data")
+    try:
+        data = np.loadtxt(io.StringIO("\n".join(line for _, line in body)), delimiter=delimiter, ndmin=2)
+        if data.shape[1] != len(names):
+            raise ValueError("column count")
+    except ValueError:
+        data = _parse_cells(path, body, names, delimiter)
+    return Table(path, {name: np.ascontiguousarray(data[:, k]) for k, name in enumerate(names)})
+
+
+def _parse_cells(path: Path, body: list[tuple[int, str]], names: list[str], delimiter: str | None) -> FloatArray:
+    """Cell by cell, for the rows the fast reader refused: an empty cell is NaN, anything else must be a number."""
+    data = np.empty((len(body), len(names)))
+    for row, (line_no, line) in enumerate(body):
+        cells = line.split(delimiter)
+        if len(cells) != len(names):
+            raise _error(path, f"line {line_no} has {len(cells)} fields, the header has {len(names)}",
+                         "fix the row or the header")
+        for k, cell in enumerate(cells):
+            text = cell.strip()
+            try:
+                data[row, k] = float(text) if text else np.nan
+            except ValueError:
+                raise _error(path, f"line {line_no}, column {names[k]!r}: {text!r} is not a number",
+                             "fix the cell or drop the row") from None
+    return data
+
+
+def _load_npz(path: Path) -> dict[str, object]:
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            arrays: dict[str, object] = {}
+            for name in archive.files:
+                try:
+                    arrays[name] = archive[name]
+                except ValueError:   # an object array, which needs pickle: not numeric data
+                    arrays[name] = None
+            return arrays
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise _error(path, f"is not a readable NPZ file ({exc})", "save it with numpy.savez") from exc
+
+
+def _load_mat(path: Path) -> dict[str, object]:
+    from scipy.io import loadmat
+    from scipy.io.matlab import MatReadError
+
+    try:
+        found = loadmat(path)
+    except NotImplementedError as exc:   # MATLAB -v7.3 files are HDF5
+        raise _error(path, "is a MATLAB v7.3 (HDF5) file", "save it with save(..., '-v7') or as CSV") from exc
+    except (MatReadError, OSError, ValueError, TypeError) as exc:
+        raise _error(path, f"is not a readable MAT file ({exc})",
+                     "save it with MATLAB's save or scipy.io.savemat") from exc
+    return {name: value for name, value in found.items() if not name.startswith("__")}
+
+
+def _from_arrays(path: Path, arrays: dict[str, object]) -> Table:
+    """Columns of named arrays: vectors as ``name``, 2-D arrays as ``name:k`` (samples on the longer axis)."""
+    columns: dict[str, FloatArray] = {}
+    skipped: dict[str, str] = {}
+    for name, value in arrays.items():
+        array = np.asarray(value) if value is not None else None
+        if array is None or array.dtype.kind not in "biuf":
+            skipped[name] = "not numeric"
+            continue
+        if array.ndim == 2 and 1 in array.shape:
+            array = array.reshape(-1)
+        if array.ndim == 1:
+            columns[name] = array.astype(np.float64)
+        elif array.ndim == 2:
+            block = array if array.shape[0] >= array.shape[1] else array.T
+            columns.update({f"{name}:{k}": block[:, k].astype(np.float64) for k in range(block.shape[1])})
+        else:
+            skipped[name] = f"{array.ndim}-D with shape {array.shape}"
+    if not columns:
+        raise _error(path, "holds no numeric vectors or matrices", "save the signals as numeric arrays")
+    return Table(path, columns, skipped)
+

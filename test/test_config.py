@@ -42,7 +42,7 @@ def base_parameters() -> dict:
 
 
 @pytest.mark.parametrize("group, key, value, message", [
-    ("filter", "ewma_rate", 1.5, r"filter\.ewma_rate.*\(0\.0, 1\.0\]"),
+    ("filter", "ewma_time", -1.5, r"filter\.ewma_time.*\(0\.0, 1000000\.0\]"),
     ("filter", "vb_iterations", 0, r"filter\.vb_iterations.*integer in \[1, 50\]"),
     ("filter", "vb_variant", "magic", r"filter\.vb_variant.*one of paper, huang"),
     ("wrench", "frame", "tool", r"wrench\.frame.*base, end_effector"),

@@ -64,12 +64,12 @@ def test_a_long_gap_resets_the_filter(panda_config, panda_trained):
 
 def test_configure_applies_run_time_keys_as_if_built_with_them(panda_config, panda_trained, panda):
     """Run-time keys changed through configure act exactly as in an estimator built with them;
-    a key that shapes the filter (filter.vb_window) is refused by name and changes nothing."""
-    changed = replace(panda_config, filter=replace(panda_config.filter, ewma_rate=0.05, nis_rate=0.2),
+    a key that shapes the filter (filter.vb_window_time) is refused by name and changes nothing."""
+    changed = replace(panda_config, filter=replace(panda_config.filter, ewma_time=0.04, nis_time=0.01),
                       wrench=replace(panda_config.wrench, damping=0.1))
     estimator = Estimator.from_config(panda_config, panda_trained)
     estimator.configure(changed)
-    assert estimator.config is changed and estimator.observer.settings.ewma_rate == 0.05
+    assert estimator.config is changed and estimator.observer.settings.ewma_time == 0.04
     built = Estimator.from_config(changed, panda_trained)
     stream = synthetic_stream(panda, 0.5, seed=4, external=step_torque(0.2, np.full(7, 1.0)))
     for k in range(len(stream.stamp)):
@@ -78,8 +78,8 @@ def test_configure_applies_run_time_keys_as_if_built_with_them(panda_config, pan
         if expected is not None:
             assert np.array_equal(estimate.tau_ext, expected.tau_ext)
             assert np.array_equal(estimate.wrench, expected.wrench)
-    with pytest.raises(ValueError, match="filter.vb_window"):
-        estimator.configure(replace(changed, filter=replace(changed.filter, vb_window=50)))
+    with pytest.raises(ValueError, match="filter.vb_window_time"):
+        estimator.configure(replace(changed, filter=replace(changed.filter, vb_window_time=0.1)))
     assert estimator.config is changed and estimator.observer.settings is changed.filter
 
 

@@ -103,8 +103,8 @@ def test_configure_takes_the_run_time_keys_only(panda_config):
     settings = panda_config.filter
     observer = make_momentum_observer("kfmo", 7, None, settings)
     assert observer.settings is settings
-    observer.configure(replace(settings, ewma_rate=0.05, nis_rate=0.2))
-    assert observer.settings.ewma_rate == 0.05 and observer.settings.nis_rate == 0.2
+    observer.configure(replace(settings, ewma_time=0.04, nis_time=0.01))
+    assert observer.settings.ewma_time == 0.04 and observer.settings.nis_time == 0.01
     with pytest.raises(ValueError, match="filter.initial_covariance"):
         observer.configure(replace(settings, initial_covariance=2.0))
     assert observer.settings.initial_covariance == settings.initial_covariance

@@ -196,8 +196,8 @@ def _window_filter(panda_config, n: int, q0: float, R: float, variant: str = "wi
     from kvark_ros.core.observers.momentum_observers import MomentumNoise
     tuning_ = FilterTuning(np.full(n, 5.0), np.full(n, 0.05), np.full(n, 0.02), np.full(n, 1e-4))
     noise = MomentumNoise(np.full(n, R), np.full(n, q0), np.full(n, 1e-8))
-    config = replace(panda_config.filter, measurement="momentum", vb_variant=variant, vb_window=25, vb_prior_dof=1.0,
-                     vb_forgetting=0.99, **settings)
+    config = replace(panda_config.filter, measurement="momentum", vb_variant=variant, vb_window_time=0.05,
+                     vb_prior_dof=1.0, vb_memory=0.2, **settings)
     return KVARKMomentumFilter("kvark", flat_residual(n, 1e-4), tuning_, noise, config)
 
 
@@ -276,7 +276,7 @@ def test_window_vb_state_covariances_match_the_augmented_matrix_filter(panda_con
 
 
 def _onset_filter(panda_config, n: int, threshold: float):
-    return _window_filter(panda_config, n, 0.05, 1e-6, onset_threshold=threshold, onset_window=10)
+    return _window_filter(panda_config, n, 0.05, 1e-6, onset_threshold=threshold, onset_window_time=0.02)
 
 
 def _step_response(observer, rng, step: np.ndarray, noise: float, steps: int = 1500, h: float = 0.002,

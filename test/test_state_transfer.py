@@ -25,7 +25,7 @@ MODEL = ROOT / "models" / "panda"
 BAG = ROOT / "bags" / "panda_collision"
 OBSERVERS = [name for name in OBSERVER_NAMES if name != "oracle"]    # oracle needs the simulator's plant
 # Samples of the collision in BAG where the default K-VARK's short-memory state matters: the onset
-# detector accepts jumps at 1420-1426 (its hypotheses span onset_window = 10 samples) and the contact
+# detector accepts jumps at 1420-1426 (its hypotheses span onset_window_time = 20 ms = 10 samples) and the contact
 # flag is pending (debounce running) over 1420-1429 (raise) and 1516-1525 (release).
 COLLISION_SPLITS = (1424, 1520)
 
@@ -128,7 +128,7 @@ def test_a_state_that_does_not_fit_is_refused_and_changes_nothing(config, traine
     """Other onset window: the detector's arrays differ in shape; wrong keys are refused too."""
     old = Estimator.from_config(config, trained, "kvark")
     _run(old, inputs, 0, 100)
-    other = load_config(CONFIG, filter__onset_window=config.filter.onset_window + 1)
+    other = load_config(CONFIG, filter__onset_window_time=config.filter.onset_window_time + 0.002)
     new = Estimator.from_config(other, trained, "kvark")
     before = new.observer.state()
     with pytest.raises(ValueError, match="shape"):

@@ -278,8 +278,8 @@ CONFIG_CASES = {
     "unknown_key": (lambda d: _with_parameters(d, "unknown_key", lambda p: p.__setitem__("obsrever", "kf")),
                     ("unknown key 'obsrever'",), "allowed keys"),
     "out_of_range": (lambda d: _with_parameters(d, "out_of_range",
-                                                lambda p: p["filter"].__setitem__("ewma_rate", 2.0)),
-                     ("filter.ewma_rate", "2.0"), "allowed"),
+                                                lambda p: p["filter"].__setitem__("ewma_time", -2.0)),
+                     ("filter.ewma_time", "-2.0"), "allowed"),
     "missing_key": (lambda d: _with_parameters(d, "missing_key", lambda p: p.pop("robot")),
                     ("missing required key 'robot'",), "non-empty string"),
 }

@@ -2,7 +2,7 @@
 
 The YAML file is the node's parameter file (``kvark_estimator: ros__parameters: ...``), so the
 same file configures live and offline runs. Nested groups map to dotted ROS parameter names
-(``filter.ewma_rate``). The keys, their checks, defaults and meanings are the one table of
+(``filter.ewma_time``). The keys, their checks, defaults and meanings are the one table of
 ``kvark_ros.core.config_schema``; ``EstimatorConfig`` and its typed groups (``config.filter``,
 ``config.wrench``, ...) are made from it, so a new key is a row there plus the code that reads it.
 Every key is validated here, in one place; a bad key or value raises ``ConfigError`` naming the key
@@ -16,8 +16,8 @@ from dataclasses import make_dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
-from kvark_ros.core.config_schema import (GROUPS, KEYS, KEYS_BY_NAME, MEASUREMENTS, OBSERVER_NAMES, VB_VARIANTS,
-                                          WRENCH_FRAMES, Key, vb_variant_problem)
+from kvark_ros.core.config_schema import (GROUPS, KEYS, KEYS_BY_NAME, MEASUREMENTS, OBSERVER_NAMES, RENAMED_KEYS,
+                                          VB_VARIANTS, WRENCH_FRAMES, Key, vb_variant_problem)
 from kvark_ros.core.files import read_yaml
 from kvark_ros.core.payload import Payload
 
@@ -28,6 +28,7 @@ __all__ = ["NODE_NAME", "OBSERVER_NAMES", "WRENCH_FRAMES", "VB_VARIANTS", "MEASU
 
 NODE_NAME = "kvark_estimator"
 EXAMPLE_ROBOT_DATA_PREFIX = "example-robot-data:"
+ROBOT_DESCRIPTION = "robot_description"       # robot_model.urdf: the node takes the URDF from this topic
 
 
 class ConfigError(ValueError):
@@ -97,6 +98,11 @@ def _value(key: Key, parameters: Mapping[str, Any], source: str) -> Any:
 def config_from_parameters(parameters: Mapping[str, Any], source: str = "configuration") -> EstimatorConfig:
     """Validate dotted parameters (as the ROS node holds them) into an ``EstimatorConfig``."""
     unknown = sorted(set(parameters) - set(KEYS_BY_NAME))
+    renamed = [name for name in unknown if name in RENAMED_KEYS]
+    if renamed:
+        new, how = RENAMED_KEYS[renamed[0]]
+        raise ConfigError(f"{source}: key '{renamed[0]}' is now '{new}' (seconds, independent of the sample rate; "
+                          f"{how})")
     if unknown:
         raise ConfigError(f"{source}: unknown key '{unknown[0]}'; allowed keys: {', '.join(KEYS_BY_NAME)}")
     values = {key.name: _value(key, parameters, source) for key in KEYS}
@@ -130,9 +136,9 @@ def parameter_defaults() -> dict[str, Any]:
 def load_config(path: str | os.PathLike, **overrides: Any) -> EstimatorConfig:
     """Read ``kvark_estimator: ros__parameters:`` from a YAML file and validate it.
 
-    ``overrides`` replace dotted keys (``observer="kf"``); relative ``model_dir`` and URDF
-    paths are resolved against the YAML file's folder's parent (the package root), then the
-    working directory.
+    ``overrides`` replace dotted keys (``observer="kf"``); relative ``model_dir``, URDF and
+    ``model_augmentation`` paths are resolved against the YAML file's own folder (one rule, wherever
+    the command runs: ``config/panda.yaml`` names ``../models/panda``).
     """
     source = str(path)
     document = read_yaml(path, ConfigError, "config file", "pass an existing config such as config/panda.yaml",
@@ -146,17 +152,15 @@ def load_config(path: str | os.PathLike, **overrides: Any) -> EstimatorConfig:
     flat = flatten_parameters(parameters)
     flat.update({key.replace("__", "."): value for key, value in overrides.items()})
     config = config_from_parameters(flat, source)
-    root = Path(path).resolve().parent.parent
-    return with_resolved_paths(config, root)
+    return with_resolved_paths(config, Path(path).resolve().parent)
 
 
-def with_resolved_paths(config: EstimatorConfig, root: Path) -> EstimatorConfig:
-    """Relative file paths in the config are relative to the package root holding config/."""
+def with_resolved_paths(config: EstimatorConfig, folder: Path) -> EstimatorConfig:
+    """Relative file paths of the config made absolute against ``folder``, the config file's folder."""
     def resolve(text: str) -> str:
-        if text.startswith(("<", EXAMPLE_ROBOT_DATA_PREFIX)) or os.path.isabs(text):
+        if text.startswith(("<", EXAMPLE_ROBOT_DATA_PREFIX)) or text == ROBOT_DESCRIPTION or os.path.isabs(text):
             return text
-        candidate = root / text
-        return str(candidate) if candidate.exists() else text
+        return os.path.normpath(folder / text)
 
     return replace(config, urdf=resolve(config.urdf), model_dir=resolve(config.model_dir),
                    model_augmentation=resolve(config.model_augmentation) if config.model_augmentation else "")

@@ -1,12 +1,12 @@
 """The one table of configuration keys: name, type, allowed values, default, run-time, meaning.
 
 Everything else about a key comes from this table: validation (``kvark_ros.core.config``), the typed
-settings groups the code reads (``config.filter.ewma_rate``), the ROS node's parameter descriptors and
+settings groups the code reads (``config.filter.ewma_time``), the ROS node's parameter descriptors and
 the README's key table (``kvark config --keys``, checked by the tests). Adding a key is one ``Key`` row
 here plus the code that uses it.
 
-Dotted names are the ROS parameter names and the YAML nesting (``filter.ewma_rate`` is
-``filter: {ewma_rate: ...}``). ``group``/``attr`` say where the value lives in ``EstimatorConfig``:
+Dotted names are the ROS parameter names and the YAML nesting (``filter.ewma_time`` is
+``filter: {ewma_time: ...}``). ``group``/``attr`` say where the value lives in ``EstimatorConfig``:
 ``config.<attr>`` for top-level keys, ``config.<group>.<attr>`` for grouped ones.
 """
 from __future__ import annotations
@@ -20,6 +20,8 @@ OBSERVER_NAMES = ("kvark", "kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "gmr_gp"
 WRENCH_FRAMES = ("base", "end_effector")
 VB_VARIANTS = ("paper", "huang", "smoothed", "window")
 MEASUREMENTS = ("momentum", "difference")
+TORQUE_SOURCES = ("effort_commands", "effort_commands_joint_state", "joint_states_effort")
+OUTPUT_QOS = ("reliable", "sensor_data")
 # The VB readings each form of the filter implements (docs/method.md §4.5-4.6).
 VB_VARIANTS_BY_MEASUREMENT = {"momentum": ("paper", "smoothed", "window"), "difference": ("paper", "huang")}
 
@@ -100,7 +102,7 @@ class Key:
 
 
 def _key(name: str, kind: str, default: Any, meaning: str, **options: Any) -> Key:
-    """A Key whose group and attribute follow from its dotted name (``filter.ewma_rate``)."""
+    """A Key whose group and attribute follow from its dotted name (``filter.ewma_time``)."""
     if "attr" not in options:
         group, _, attr = name.rpartition(".")
         options.update(group=group or None, attr=attr)
@@ -120,11 +122,12 @@ KEYS: tuple[Key, ...] = (
     _key("robot_model.ee_frame", "text", None, "wrench reference frame (origin and, for wrench.frame end_effector, axes)", attr="ee_frame"),
     _key("robot_model.flange_frame", "text", None, "frame a known payload attaches to", attr="flange_frame"),
     _key("robot_model.payload.mass", "number", 0.0, "known tool/payload at the flange added to the nominal model, kg (0: none)",
-         **_unit(0.0, 1000.0), group="payload", attr="mass"),
+         runtime=True, **_unit(0.0, 1000.0), group="payload", attr="mass"),
     _key("robot_model.payload.com", "vector3", [0.0, 0.0, 0.0], "payload centre of mass in the flange frame, m",
-         group="payload", attr="com"),
+         runtime=True, group="payload", attr="com"),
     _key("robot_model.payload.inertia", "vector6", [0.0] * 6,
-         "payload inertia about its CoM, kg m^2 (ixx iyy izz ixy ixz iyz)", group="payload", attr="inertia"),
+         "payload inertia about its CoM, kg m^2 (ixx iyy izz ixy ixz iyz)", runtime=True,
+         group="payload", attr="inertia"),
     _key("residual_model.model_dir", "text", None,
          "trained model directory written by kvark train (~/reload_model reloads it)", attr="model_dir"),
     _key("model_augmentation", "path", "",
@@ -135,31 +138,57 @@ KEYS: tuple[Key, ...] = (
          **_unit(0.0, 10.0)),
     _key("filter.initial_covariance", "number", 1.0, "P₀ (τ block) = value · I, N²·m²", **_unit(0.0, 1e6, low_open=True)),
     _key("filter.vb_iterations", "integer", 1, "VB iterations M per sample", **_unit(1, 50)),
-    _key("filter.vb_forgetting", "number", 0.99, "forgetting ρ of the inverse-Wishart statistics",
-         **_unit(0.0, 1.0, low_open=True)),
+    _key("filter.vb_memory", "number", 0.2,
+         "s; memory T of the inverse-Wishart statistics: forgetting ρ = 1 − t_s/T per sample of period t_s",
+         **_unit(0.0, 1e6, low_open=True)),
     _key("filter.vb_variant", "choice", "window", "reading of the VB step (docs/method.md §4.5-4.6)", choices=VB_VARIANTS),
-    _key("filter.vb_window", "integer", 25, "window variant: samples L per window of the τ_ext change", **_unit(5, 5000)),
+    _key("filter.vb_window_time", "number", 0.05,
+         "s; window variant: length of a window of the τ_ext change (L = time / t_s samples, at least 5)",
+         **_unit(0.001, 60.0)),
     _key("filter.vb_prior_dof", "number", 1.0, "window variant: prior strength ν₀ (in windows) of the IW prior around the trained Σ_d",
          **_unit(0.0, 1e6, low_open=True)),
     _key("filter.onset_threshold", "number", 60.0,
          "contact-onset GLR threshold (χ²(1) statistic; 0 = off; momentum form)", **_unit(0.0, 1e6)),
-    _key("filter.onset_window", "integer", 10, "samples back the onset may lie", **_unit(2, 500)),
+    _key("filter.onset_window_time", "number", 0.02,
+         "s back the contact onset may lie (time / t_s hypotheses, at least 2)", **_unit(0.001, 1.0)),
     _key("filter.measurement", "choice", "momentum", "form of the filter: p measured (momentum) or the paper's eq. 28 (difference)", choices=MEASUREMENTS),
     _key("filter.huang_tau", "number", 300.0, "prior strength τ of the huang variant",
          **_unit(0.0, 1e6, low_open=True)),
-    _key("filter.ewma_rate", "number", 0.01, "EWMA rate of the empirical noise (eq. 31)", runtime=True,
-         **_unit(0.0, 1.0, low_open=True)),
-    _key("filter.nis_rate", "number", 0.01, "running-mean NIS rate (A4)", runtime=True,
-         **_unit(0.0, 1.0, low_open=True)),
+    _key("filter.ewma_time", "number", 0.2,
+         "s; time constant T of the EWMA of the empirical noise (eq. 31): rate t_s/T per sample", runtime=True,
+         **_unit(0.0, 1e6, low_open=True)),
+    _key("filter.nis_time", "number", 0.2, "s; time constant of the running-mean NIS (A4): rate t_s/T per sample",
+         runtime=True, **_unit(0.0, 1e6, low_open=True)),
     _key("input.max_gap", "number", 0.05, "s; a longer gap between joint states resets the filter", runtime=True,
          **_unit(0.0, 10.0, low_open=True)),
     _key("input.command_max_age", "number", 0.01, "s; oldest command a joint state may be paired with", runtime=True,
          **_unit(0.0, 1.0, low_open=True)),
+    _key("input.torque_source", "choice", "effort_commands",
+         "where τ_m comes from: effort_commands (Float64MultiArray; offline also JointState), "
+         "effort_commands_joint_state (JointState effort on effort_commands), joint_states_effort "
+         "(effort of joint_states, e.g. measured link-side torque)", choices=TORQUE_SOURCES),
+    _key("input.joint_states_topic", "text", "joint_states",
+         "sensor_msgs/JointState topic (q, q̇ and, for joint_states_effort, τ_m); bags match it with or without "
+         "the leading /"),
+    _key("input.effort_commands_topic", "text", "effort_commands", "commanded joint torque topic"),
+    _key("input.wrench_topic", "text", "/ft_sensor/wrench",
+         "offline ground truth: WrenchStamped of a wrist F/T sensor in the bag (replay --ground-truth ft)"),
+    _key("input.external_torque_topic", "text", "/ground_truth/external_joint_torque",
+         "offline ground truth: JointState effort = true τ_ext in the bag (replay --ground-truth topic)"),
     _key("input.queue_depth", "integer", 50, "subscription queue depth of the node (sensor-data QoS)", **_unit(1, 1000)),
     _key("contact.confidence", "number", 0.99, "confidence of the variance-aware χ² contact test", runtime=True,
          **_unit(0.5, 1.0, low_open=True, high_open=True)),
+    _key("contact.collision_torque", "number", 8.5,
+         "N·m; the collision flag is raised at once when a joint's |τ_ext| exceeds this by more than its "
+         "interval (no debounce)", runtime=True, **_unit(0.0, 1000.0, low_open=True)),
     _key("contact.debounce", "number", 0.02, "s the contact test must hold before the flag changes",
          runtime=True, **_unit(0.0, 1.0)),
+    _key("output.qos", "choice", "reliable",
+         "QoS of the node's estimate topics: reliable, or sensor_data (best effort)", choices=OUTPUT_QOS),
+    _key("tare.duration", "number", 1.0, "s of rest ~/tare averages τ_ext over", runtime=True,
+         **_unit(0.0, 60.0, low_open=True)),
+    _key("tare.max_speed", "number", 0.02, "rad/s; ~/tare refuses (and stops) while any joint moves faster",
+         runtime=True, **_unit(0.0, 10.0, low_open=True)),
     _key("diagnostics.max_loss", "number", 0.01,
          "share of joint states lost (gaps in their stamps) above which /diagnostics warns", runtime=True,
          **_unit(0.0, 1.0)),
@@ -167,6 +196,15 @@ KEYS: tuple[Key, ...] = (
          **_unit(0.0, 60.0, low_open=True)),
 )
 KEYS_BY_NAME: dict[str, Key] = {key.name: key for key in KEYS}
+# Keys that counted samples until the rate-independent schema: the old name -> (new name, how to convert).
+RENAMED_KEYS: dict[str, tuple[str, str]] = {
+    "filter.vb_forgetting": ("filter.vb_memory", "T = t_s / (1 − ρ); 0.99 at 500 Hz is 0.2"),
+    "filter.vb_window": ("filter.vb_window_time", "samples × t_s; 25 at 500 Hz is 0.05"),
+    "filter.onset_window": ("filter.onset_window_time", "samples × t_s; 10 at 500 Hz is 0.02"),
+    "filter.ewma_rate": ("filter.ewma_time", "T = t_s / rate; 0.01 at 500 Hz is 0.2"),
+    "filter.nis_rate": ("filter.nis_time", "T = t_s / rate; 0.01 at 500 Hz is 0.2"),
+    "torque_source": ("input.torque_source", "same values"),
+}
 GROUPS: tuple[str, ...] = tuple(dict.fromkeys(key.group for key in KEYS if key.group))
 
 

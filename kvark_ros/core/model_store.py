@@ -21,7 +21,7 @@ import yaml
 from kvark_ros import __version__
 from kvark_ros.core.augmentation import Augmentation, AugmentationError, parse_augmentation
 from kvark_ros.core.files import read_yaml
-from kvark_ros.core.observers.base import FilterTuning
+from kvark_ros.core.observers.base import DEFAULT_SAMPLE_PERIOD, FilterTuning
 from kvark_ros.core.observers.momentum_observers import MomentumNoise
 from kvark_ros.core.residual import LEARNED_BASELINES, KMPResidualModel, ResidualModelError
 
@@ -49,6 +49,12 @@ class TrainedModel:
     baseline_tunings: Mapping[str, FilterTuning] = field(default_factory=dict)
     momentum_noise: MomentumNoise | None = None
     augmentation: Augmentation | None = None
+    sample_period: float = DEFAULT_SAMPLE_PERIOD   # t_s, s: median period of the training data
+
+    @property
+    def sample_rate(self) -> float:
+        """The rate the model was trained at, Hz (1 / t_s)."""
+        return 1.0 / self.sample_period
 
 
 def save_model(directory: str | os.PathLike, model: TrainedModel) -> None:
@@ -67,7 +73,8 @@ def save_model(directory: str | os.PathLike, model: TrainedModel) -> None:
                     "filter_tuning": model.tuning.to_dict(),
                     "baselines": {name: model.baseline_tunings[name].to_dict() for name in model.baselines},
                     "momentum_noise": None if model.momentum_noise is None else model.momentum_noise.to_dict(),
-                    "augmentation_sha256": None if model.augmentation is None else model.augmentation.sha256}
+                    "augmentation_sha256": None if model.augmentation is None else model.augmentation.sha256,
+                    "sample_rate_hz": model.sample_rate}
         if model.augmentation is not None:
             (staging / AUGMENTATION_FILE).write_text(model.augmentation.text)
         (staging / MODEL_FILE).write_text(yaml.safe_dump(document, sort_keys=False))
@@ -114,6 +121,10 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
                             for name, values in (document.get("baselines") or {}).items()}
         noise = document["momentum_noise"]      # written after info: absent when the file was cut short
         momentum_noise = None if noise is None else MomentumNoise.from_dict(noise)
+        # Models written before the rate was recorded were all trained at 500 Hz.
+        sample_period = 1.0 / float(document.get("sample_rate_hz", 1.0 / DEFAULT_SAMPLE_PERIOD))
+        if not 0.0 < sample_period < 1.0:
+            raise ValueError(f"sample_rate_hz {document.get('sample_rate_hz')!r} is not a rate above 1 Hz")
     except (KeyError, TypeError, ValueError) as exc:
         raise ResidualModelError(f"{path}: incomplete or invalid model file ({exc}); retrain the model") from exc
     if joint_names is not None and tuple(joint_names) != names:
@@ -134,7 +145,7 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
     if sizes != {len(names)}:
         raise ResidualModelError(f"{path}: residual models and filter tunings disagree on the number of joints")
     return TrainedModel(robot, names, residual, tuning, dict(document.get("info") or {}), baselines,
-                        baseline_tunings, momentum_noise, augmentation)
+                        baseline_tunings, momentum_noise, augmentation, sample_period)
 
 
 def _load_augmentation(directory: Path, joint_names: tuple[str, ...], recorded: str | None) -> Augmentation | None:

@@ -215,6 +215,11 @@ class StreamPairer:
         done.append(RESET)
         return done
 
+    @property
+    def period(self) -> float | None:
+        """The joint states' measured period, s (a running mean of the regular steps); None before two."""
+        return self._period
+
     def _count_loss(self, step: float) -> None:
         """Count the joint states a ``step`` (s) between two accepted ones skipped (module docstring)."""
         period = self._period

@@ -22,6 +22,7 @@ from scipy.signal import savgol_filter
 from kvark_ros import __version__
 from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.model_store import TrainedModel
+from kvark_ros.core.model_checks import data_source
 from kvark_ros.core.observers.base import FilterTuning
 from kvark_ros.core.observers.momentum_observers import MomentumNoise
 from kvark_ros.core.residual import INPUT_KINDS, LEARNED_BASELINES, KMPResidualModel
@@ -169,7 +170,7 @@ def choose_inputs(data: TrainingData, mode: str, seed: int,
                            for seg in data.segments])
     scores: dict[str, list[float]] = {}
     for step, kind in enumerate(INPUT_KINDS, start=1):
-        log(f"[train] choosing residual inputs: fitting {kind} on every joint ({step}/{len(INPUT_KINDS)})")
+        log(f"[train] residual inputs {step}/{len(INPUT_KINDS)}: fitting {kind} on every joint ...")
         kinds = (kind,) * n
         z = second_inputs(kinds, data.q, data.g)
         model = fit_kmp(data.qd[~tail], z[~tail], data.tau_r[~tail], kinds, N_COMPONENTS, _n_support(kinds), seed)
@@ -201,12 +202,15 @@ def train_model(robot: RobotModel, robot_name: str, segments: Sequence[Estimator
     of ``INPUT_MODES`` (``choose_inputs``)."""
     started = time.perf_counter()
     data = training_data(robot, segments)
+    log(f"[train] robot model along {len(segments)} recording(s): {len(data.qd)} samples "
+        f"({time.perf_counter() - started:.1f} s)")
     kinds, selection = choose_inputs(data, residual_inputs, seed, log)
     rng = np.random.default_rng(seed)
     held_out = rng.random(len(data.qd)) < HOLDOUT
     qd_fit, tau_fit = data.qd[~held_out], data.tau_r[~held_out]
     q_held, g_held = data.q[held_out], data.g[held_out]
-    log(f"[train] {len(data.qd)} samples from {len(segments)} recording(s); {held_out.sum()} held out")
+    log(f"[train] KMP residual of {len(kinds)} joints: GMM → GMR, GP fit on {(~held_out).sum()} samples, "
+        f"{held_out.sum()} held out for λ2 ...")
     z = second_inputs(kinds, data.q, data.g)
     kmp = fit_kmp(qd_fit, z[~held_out], tau_fit, kinds, N_COMPONENTS, _n_support(kinds), seed)
     log(f"[train] GP fit: length scale {np.round(kmp.hyper.length_scale, 3).tolist()} rad/s, "
@@ -223,10 +227,12 @@ def train_model(robot: RobotModel, robot_name: str, segments: Sequence[Estimator
     if baselines:
         # GMR-GP samples the KMP's own GMR reference (fitted with N_COMPONENTS), as in the paper.
         options = {"gmr_gp": {"n_components": N_COMPONENTS, "n_support": N_SUPPORT, "reference": kmp.reference}}
-        for name, model_class in LEARNED_BASELINES.items():
+        for step, (name, model_class) in enumerate(LEARNED_BASELINES.items(), start=1):
+            fit_started = time.perf_counter()
             residuals[name] = model_class.fit(qd_fit, tau_fit, seed=seed, **options.get(name, {}))
             tunings[name] = _tuning(data, lambda seg, dyn, model=residuals[name]: model.predict_batch(seg.qd)[0])
-            log(f"[train] baseline {name} fitted and tuned")
+            log(f"[train] baselines {step}/{len(LEARNED_BASELINES)}: {name} fitted and tuned "
+                f"({time.perf_counter() - fit_started:.1f} s)")
     longest = int(np.argmax([len(seg.stamp) for seg in data.segments]))
     noise = MomentumNoise.from_training(data.dynamics[longest].p, data.dynamics[longest].u,
                                         data.segments[longest].stamp)
@@ -250,6 +256,10 @@ def train_model(robot: RobotModel, robot_name: str, segments: Sequence[Estimator
         "held_out_coverage95": coverage.tolist(),
         "held_out_mean_std": np.sqrt(held_var.mean(axis=0)).tolist(),
         "training_seconds": round(time.perf_counter() - started, 1),
+        "data_source": data_source([seg.simulated for seg in segments]),
     })
+    # t_s: the median period of all training samples; the config's filter times convert at it (PerSample).
+    sample_period = float(np.median(np.concatenate([np.diff(seg.stamp) for seg in data.segments])))
+    log(f"[train] sample rate {1.0 / sample_period:.1f} Hz (recorded in the model: the filter's times convert at it)")
     return TrainedModel(robot_name, robot.joint_names, kmp, tuning, info, residuals, tunings, noise,
-                        robot.augmentation)
+                        robot.augmentation, sample_period)

@@ -73,14 +73,14 @@ def synthetic_stream(robot: RobotModel, duration: float, rate: float = 500.0, se
 
 
 def train_synthetic(robot: RobotModel, robot_name: str, seed: int = 0, duration: float = 20.0,
-                    baselines: bool = True) -> TrainedModel:
+                    baselines: bool = True, rate: float = 500.0) -> TrainedModel:
     """The trainer of ``kvark train``, on two synthetic contact-free streams instead of bags.
 
     The streams' residual is Gaz friction, a function of q̇ alone, so every joint takes q̇ alone (the paper's
     KMP) and the per-joint input selection, which would only cost time, is skipped."""
     segments = []
     for offset in range(2):
-        stream = synthetic_stream(robot, duration / 2, seed=seed + 1000 * offset)
+        stream = synthetic_stream(robot, duration / 2, rate=rate, seed=seed + 1000 * offset)
         segments.append(EstimatorInputs(stream.stamp, stream.q, stream.qd, stream.tau_m, "synthetic", 0))
     return train_model(robot, robot_name, segments, baselines=baselines, seed=seed, log=lambda _line: None,
                        info={"source": "synthetic stream"}, residual_inputs="qd")

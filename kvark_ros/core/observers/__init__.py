@@ -44,15 +44,18 @@ def _kvark(variant: str, residual: ResidualPredictor, tuning: FilterTuning, trai
            settings: FilterSettings, name: str) -> Observer:
     """The K-VARK filter in the configured measurement form (``filter.measurement``)."""
     if settings.measurement == "difference":
-        return KVARKFilter(variant, residual, tuning, settings, name=name)
+        return KVARKFilter(variant, residual, tuning, settings, name=name, sample_period=trained.sample_period)
     if trained.momentum_noise is None:
         raise ObserverError("filter.measurement: momentum needs the model's momentum noise; retrain the model")
-    return KVARKMomentumFilter(variant, residual, tuning, trained.momentum_noise, settings, name=name)
+    return KVARKMomentumFilter(variant, residual, tuning, trained.momentum_noise, settings, name=name,
+                               sample_period=trained.sample_period)
 
 
 def make_observer(name: str, trained: "TrainedModel", settings: FilterSettings,
                   oracle: ResidualPredictor | None = None) -> Observer:
     """Build the observer called ``name`` from a trained model and the ``filter.*`` settings.
+
+    The settings' times (seconds) become sample counts at the model's sample period (``PerSample``).
 
     ``oracle``: the true residual, for the ``oracle`` observer only (the simulator passes its
     plant's friction, ``kvark_ros.sim.plant.OracleResidual``).

@@ -12,6 +12,37 @@ from kvark_ros.core.config import FilterSettings
 from kvark_ros.core.config_schema import KEYS_BY_NAME
 
 
+# t_s of models written before they recorded their sample rate: they were trained on 500 Hz data.
+DEFAULT_SAMPLE_PERIOD = 0.002
+
+
+@dataclass(frozen=True)
+class PerSample:
+    """The ``filter.*`` times of the config at one sample period t_s (docs/method.md §4.9).
+
+    The config gives windows and rates in seconds so that one file means the same at 100 Hz and 1 kHz;
+    the filters count samples. vb_forgetting ρ = 1 − t_s/T (memory 1/(1 − ρ) = T/t_s samples, at least 2);
+    vb_window L and onset_window in samples (at least 5 and 2); ewma_rate, nis_rate = t_s/T (at most 1).
+    """
+
+    vb_forgetting: float
+    vb_window: int
+    onset_window: int
+    ewma_rate: float
+    nis_rate: float
+
+    @classmethod
+    def of(cls, settings: FilterSettings, sample_period: float) -> "PerSample":
+        """Convert ``settings`` (seconds) at t_s = ``sample_period`` s."""
+        if not np.isfinite(sample_period) or sample_period <= 0.0:
+            raise ValueError(f"sample period must be a positive number of seconds, got {sample_period!r}")
+        return cls(vb_forgetting=1.0 - min(sample_period / settings.vb_memory, 0.5),
+                   vb_window=max(5, round(settings.vb_window_time / sample_period)),
+                   onset_window=max(2, round(settings.onset_window_time / sample_period)),
+                   ewma_rate=min(1.0, sample_period / settings.ewma_time),
+                   nis_rate=min(1.0, sample_period / settings.nis_time))
+
+
 class ResidualPredictor(Protocol):
     """A residual-torque model: per-joint mean (n,) N·m and variance (n,) N²·m² at velocity q̇ (n,).
 

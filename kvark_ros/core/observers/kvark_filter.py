@@ -31,7 +31,7 @@ import numpy as np
 from kvark_ros.core.config import FilterSettings
 from kvark_ros.core.config_schema import vb_variant_problem
 from kvark_ros.core.linalg import solve_spd
-from kvark_ros.core.observers.base import FilterTuning, Observer, ResidualPredictor
+from kvark_ros.core.observers.base import DEFAULT_SAMPLE_PERIOD, FilterTuning, Observer, PerSample, ResidualPredictor
 
 NIS_SCALE_BOUNDS = (1e-2, 1e4)   # limits of the A4 process-noise scale α, so one outlier cannot freeze or explode Σ_d
 
@@ -90,8 +90,10 @@ class KVARKFilter(Observer):
     STATE = Observer.STATE + ("prediction", "x", "P", "empirical", "nis_mean", "Sigma_d", "vb_dof", "vb_scale")
 
     def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning,
-                 settings: FilterSettings, name: str | None = None) -> None:
+                 settings: FilterSettings, name: str | None = None,
+                 sample_period: float = DEFAULT_SAMPLE_PERIOD) -> None:
         super().__init__(residual.n_joints, settings)
+        self.sample_period = sample_period                             # t_s the config's times convert at
         if variant not in VARIANTS:
             raise ValueError(f"unknown K-VARK variant '{variant}'; known: {', '.join(VARIANTS)}")
         if VARIANTS[variant].vb and (problem := vb_variant_problem(settings.vb_variant, "difference")):
@@ -107,14 +109,15 @@ class KVARKFilter(Observer):
         self.initial_covariance = settings.initial_covariance          # P_0 = value · I, N²·m²
         self.vb_paper = settings.vb_variant == "paper"                 # else huang
         self.vb_iterations = settings.vb_iterations                    # M
-        self.vb_forgetting = settings.vb_forgetting                    # ρ
+        self.vb_forgetting = PerSample.of(settings, sample_period).vb_forgetting   # ρ
         self.huang_tau = settings.huang_tau                            # τ of the huang prior
         self._apply_runtime(settings)
         self.reset()
 
     def _apply_runtime(self, settings: FilterSettings) -> None:
-        self.ewma_rate = settings.ewma_rate                            # eq. 31
-        self.nis_rate = settings.nis_rate                              # A4
+        per_sample = PerSample.of(settings, self.sample_period)
+        self.ewma_rate = per_sample.ewma_rate                          # eq. 31
+        self.nis_rate = per_sample.nis_rate                            # A4
 
     def reset(self) -> None:
         n = self.n

@@ -27,7 +27,7 @@ import numpy as np
 
 from kvark_ros.core.config import FilterSettings
 from kvark_ros.core.config_schema import vb_variant_problem
-from kvark_ros.core.observers.base import FilterTuning, ResidualPredictor
+from kvark_ros.core.observers.base import DEFAULT_SAMPLE_PERIOD, FilterTuning, PerSample, ResidualPredictor
 from kvark_ros.core.observers.kvark_filter import NIS_SCALE_BOUNDS, VARIANTS
 from kvark_ros.core.observers.momentum_observers import KFMomentumObserver, MomentumNoise, joseph_update
 from kvark_ros.core.observers.onset import Jump, OnsetDetector
@@ -53,7 +53,8 @@ class KVARKMomentumFilter(KFMomentumObserver):
                                         "window", "onset")
 
     def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning, noise: MomentumNoise,
-                 settings: FilterSettings, name: str | None = None) -> None:
+                 settings: FilterSettings, name: str | None = None,
+                 sample_period: float = DEFAULT_SAMPLE_PERIOD) -> None:
         if variant not in VARIANTS:
             raise ValueError(f"unknown K-VARK variant '{variant}'; known: {', '.join(VARIANTS)}")
         if problem := vb_variant_problem(settings.vb_variant, "momentum"):
@@ -66,19 +67,22 @@ class KVARKMomentumFilter(KFMomentumObserver):
         self.tuning = tuning
         self.vb_smoothed = settings.vb_variant == "smoothed"          # else paper (window: self.window)
         self.vb_iterations = settings.vb_iterations                    # M
-        self.vb_forgetting = settings.vb_forgetting                    # ρ
+        self.sample_period = sample_period                             # t_s the config's times convert at
+        per_sample = PerSample.of(settings, sample_period)
+        self.vb_forgetting = per_sample.vb_forgetting                  # ρ
         vb = self.variant.vb
-        self.window = (WindowVB(noise.torque_density, settings.vb_window, settings.vb_forgetting,
+        self.window = (WindowVB(noise.torque_density, per_sample.vb_window, per_sample.vb_forgetting,
                                 settings.vb_prior_dof) if vb and settings.vb_variant == "window" else None)
-        self.onset = (OnsetDetector(residual.n_joints, settings.onset_threshold, settings.onset_window)
+        self.onset = (OnsetDetector(residual.n_joints, settings.onset_threshold, per_sample.onset_window)
                       if vb and settings.onset_threshold > 0.0 else None)
         self._apply_runtime(settings)
         super().__init__(residual.n_joints, noise, initial_covariance=settings.initial_covariance, settings=settings)
         self.name = name or variant
 
     def _apply_runtime(self, settings: FilterSettings) -> None:
-        self.ewma_rate = settings.ewma_rate                            # eq. 31
-        self.nis_rate = settings.nis_rate                              # A4
+        per_sample = PerSample.of(settings, self.sample_period)
+        self.ewma_rate = per_sample.ewma_rate                          # eq. 31
+        self.nis_rate = per_sample.nis_rate                            # A4
 
     def reset(self) -> None:
         super().reset()

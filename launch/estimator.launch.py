@@ -5,19 +5,21 @@
 
 config         the estimator's parameter file (default: share/kvark_ros/config/panda.yaml); the same
                YAML that ``kvark train`` / ``kvark replay`` read (``kvark_estimator: ros__parameters:``).
-namespace      namespace of the node; its outputs are then /NS/kvark_estimator/..., and its inputs
-               NS/joint_states, NS/effort_commands, NS/robot_description.
-torque_source  effort_commands (Float64MultiArray), effort_commands_joint_state (JointState effort)
-               or joint_states_effort (the effort field of joint_states).
+namespace      namespace of the node; its outputs are then /NS/kvark_estimator/..., and its relative
+               inputs NS/joint_states, NS/effort_commands, NS/robot_description.
+torque_source  input.torque_source: effort_commands (Float64MultiArray), effort_commands_joint_state
+               (JointState effort) or joint_states_effort (the effort field of joint_states).
 joint_states, effort_commands
-               the input topics (remappings; default: the node's own relative names), e.g.
+               input.joint_states_topic and input.effort_commands_topic, e.g.
                joint_states:=/franka/joint_states or effort_commands:=/forward_effort_controller/commands.
+
+The last three default to '' (the config file's value).
 
 The file's ``kvark_estimator.ros__parameters`` are passed to the node as a parameter dictionary
 rather than as the file itself: a file keyed ``kvark_estimator`` only matches a node in the root
-namespace, while a dictionary applies under any ``namespace``. Relative ``residual_model.model_dir``
-and ``robot_model.urdf`` paths are resolved as ``kvark`` resolves them: against the folder above
-the one holding the config file (a package root with config/ and models/).
+namespace, while a dictionary applies under any ``namespace``. Relative ``residual_model.model_dir``,
+``robot_model.urdf`` and ``model_augmentation`` paths are resolved as ``kvark`` resolves them:
+against the folder holding the config file.
 """
 import os
 
@@ -29,7 +31,11 @@ from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 NODE_NAME = "kvark_estimator"
-PATH_KEYS = (("residual_model", "model_dir"), ("robot_model", "urdf"))
+PATH_KEYS = (("residual_model", "model_dir"), ("robot_model", "urdf"), (None, "model_augmentation"))
+NOT_PATHS = ("robot_description", "<", "example-robot-data:")      # robot_model.urdf values that name no file
+# launch argument -> key of the config's input group it overrides when not ''
+INPUT_ARGUMENTS = (("torque_source", "torque_source"), ("joint_states", "joint_states_topic"),
+                   ("effort_commands", "effort_commands_topic"))
 
 
 def estimator_parameters(config_path: str) -> dict:
@@ -40,22 +46,23 @@ def estimator_parameters(config_path: str) -> dict:
         parameters = document[NODE_NAME]["ros__parameters"]
     except (TypeError, KeyError) as exc:
         raise RuntimeError(f"{config_path}: expected a top-level '{NODE_NAME}: ros__parameters:' mapping") from exc
-    root = os.path.dirname(os.path.dirname(os.path.abspath(config_path)))
+    folder = os.path.dirname(os.path.abspath(config_path))
     for group, key in PATH_KEYS:
-        value = (parameters.get(group) or {}).get(key)
-        if isinstance(value, str) and value and not os.path.isabs(value) and ":" not in value \
-                and not value.startswith("<") and os.path.exists(os.path.join(root, value)):
-            parameters[group][key] = os.path.join(root, value)
+        holder = parameters if group is None else parameters.get(group) or {}
+        value = holder.get(key)
+        if isinstance(value, str) and value and not os.path.isabs(value) and not value.startswith(NOT_PATHS):
+            holder[key] = os.path.normpath(os.path.join(folder, value))
     return parameters
 
 
 def _estimator_node(context, *args, **kwargs):
     parameters = estimator_parameters(LaunchConfiguration("config").perform(context))
-    parameters["torque_source"] = LaunchConfiguration("torque_source").perform(context)
+    for argument, key in INPUT_ARGUMENTS:
+        value = LaunchConfiguration(argument).perform(context)
+        if value:
+            parameters.setdefault("input", {})[key] = value
     return [Node(package="kvark_ros", executable="estimator_node", name=NODE_NAME,
                  namespace=LaunchConfiguration("namespace"), parameters=[parameters],
-                 remappings=[("joint_states", LaunchConfiguration("joint_states")),
-                             ("effort_commands", LaunchConfiguration("effort_commands"))],
                  output="screen", emulate_tty=True)]
 
 
@@ -65,11 +72,13 @@ def generate_launch_description() -> LaunchDescription:
         DeclareLaunchArgument("config", default_value=default_config,
                               description="estimator parameter file (kvark_estimator: ros__parameters: ...)"),
         DeclareLaunchArgument("namespace", default_value="", description="namespace of the estimator node"),
-        DeclareLaunchArgument("torque_source", default_value="effort_commands",
-                              description="effort_commands | effort_commands_joint_state | joint_states_effort"),
-        DeclareLaunchArgument("joint_states", default_value="joint_states",
-                              description="joint state topic (sensor_msgs/JointState)"),
-        DeclareLaunchArgument("effort_commands", default_value="effort_commands",
-                              description="commanded joint torque topic (Float64MultiArray or JointState)"),
+        DeclareLaunchArgument("torque_source", default_value="",
+                              description="input.torque_source: effort_commands | effort_commands_joint_state | "
+                                          "joint_states_effort ('' = the config's)"),
+        DeclareLaunchArgument("joint_states", default_value="",
+                              description="input.joint_states_topic (sensor_msgs/JointState; '' = the config's)"),
+        DeclareLaunchArgument("effort_commands", default_value="",
+                              description="input.effort_commands_topic (Float64MultiArray or JointState; "
+                                          "'' = the config's)"),
         OpaqueFunction(function=_estimator_node),
     ])

@@ -1,4 +1,4 @@
-"""The contact test (ROS-free): threshold, debounce, covariance, and no false flag in free motion."""
+"""The contact and collision tests (ROS-free): threshold, debounce, covariance, and no false flag in free motion."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.stats import chi2
+from scipy.stats import chi2, norm
 
 from conftest import debounced_margin
 from kvark_ros.core.estimator import Estimator
@@ -14,7 +14,7 @@ from kvark_ros.core.model_store import load_model
 from kvark_ros.io import read_run
 from kvark_ros.io.alignment import estimator_inputs
 from kvark_ros.tools.metrics import SETTLE, contact_metrics
-from kvark_ros.core.contact import ContactDetector, contact_covariance
+from kvark_ros.core.contact import CollisionDetector, ContactDetector, contact_covariance
 
 ROOT = Path(__file__).resolve().parents[1]
 AFTER_CONTACT = 0.2      # s after the last pushed sample before motion counts as contact-free again
@@ -52,6 +52,24 @@ def test_contact_covariance_adds_the_residual_uncertainty():
     assert np.allclose(P, np.diag([1.0, 2.0])), "P is not modified"
 
 
+def test_collision_flag_is_per_joint_beyond_the_interval_and_not_debounced():
+    """σ = (1, 2) N·m, z = Φ⁻¹(0.995) = 2.576 at confidence 0.99: joint 2 needs |τ| > 10 + 5.15 N·m."""
+    detector = CollisionDetector(0.99, 10.0)
+    assert detector.z == pytest.approx(norm.ppf(0.995))
+    S = np.diag([1.0, 4.0])
+    assert not detector.update(np.array([0.0, 15.0]), S)
+    assert detector.excess == pytest.approx(15.0 - 2 * detector.z)
+    assert detector.update(np.array([0.0, -15.5]), S), "raised on the first sample: no debounce"
+    assert not detector.update(np.array([12.0, 0.0]), S), "cleared on the first sample below"
+    assert detector.update(np.array([12.6, 0.0]), S)
+    assert detector.update(np.zeros(2), np.full((2, 2), np.nan)), "a non-finite S holds the flag"
+    assert not detector.update(np.array([9.9, 0.0]), None), "without S: σ = 0"
+    detector.configure(0.5, 1.0)
+    assert detector.z == pytest.approx(norm.ppf(0.75)) and detector.update(np.array([2.0, 0.0]), None)
+    with pytest.raises(ValueError):
+        detector.configure(0.99, 0.0)
+
+
 @pytest.mark.parametrize("bag", ["panda_excitation_1", "panda_excitation_2", "panda_contact", "panda_collision"])
 def test_no_false_contact_flag_in_the_contact_free_part_of_the_committed_bags(panda_config, bag):
     """models/panda with the default observer (the Estimator's own contact test) over each committed bag.
@@ -65,16 +83,19 @@ def test_no_false_contact_flag_in_the_contact_free_part_of_the_committed_bags(pa
     run = read_run(ROOT / "bags" / bag, config.joint_names)
     inputs = estimator_inputs(run, path=bag)
     estimator = Estimator.from_config(config, trained)
-    stamps, statistics, flags = [], [], []
+    stamps, statistics, flags, collisions, excess = [], [], [], [], []
     for k in range(len(inputs)):
         estimate = estimator.step(inputs.stamp[k], inputs.q[k], inputs.qd[k], inputs.tau_m[k])
         if estimate is None:
             continue
         flags.append(estimate.contact)
+        collisions.append(estimate.collision)
         stamps.append(inputs.stamp[k])
         statistics.append(estimator.contact.statistic)
+        excess.append(estimator.collision.excess)
     detector = estimator.contact
-    stamps, statistics, flags = np.array(stamps), np.array(statistics), np.array(flags)
+    stamps, statistics = np.array(stamps), np.array(statistics)
+    flags, collisions = np.array(flags), np.array(collisions)
     pushed = np.abs(run.external_torque.effort).max(axis=1) > PUSHED
     free = np.ones(len(stamps), dtype=bool)
     if pushed.any():
@@ -84,6 +105,14 @@ def test_no_false_contact_flag_in_the_contact_free_part_of_the_committed_bags(pa
     margin = debounced_margin(stamps[free], statistics[free], detector.threshold, config.contact.debounce)
     assert not flags[free].any(), f"false contact flag (threshold/statistic margin {margin:.3f})"
     assert margin > 1.0
+    # The collision flag: never in free motion nor at the ~15 N table contact (largest excess 7.05 N·m when
+    # measured, under 8.5), raised during the collision push (largest excess 10.0 N·m when measured).
+    largest = max(excess)
+    limit = config.contact.collision_torque
+    if bag == "panda_collision":
+        assert collisions.any() and not collisions[free].any(), f"largest excess {largest:.2f} N·m, limit {limit}"
+    else:
+        assert not collisions.any(), f"largest excess {largest:.2f} N·m > contact.collision_torque {limit}"
 
 
 def test_contact_metrics_of_a_hand_made_flag():

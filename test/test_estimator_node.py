@@ -503,9 +503,9 @@ def test_runtime_parameter_changes(ros, make_node):
     P = ros.Parameter
     [result] = node.set_parameters([P("contact.debounce", value=0.1)])
     assert result.successful and node._config.contact.debounce == 0.1 and node._estimator.contact.debounce == 0.1
-    [result] = node.set_parameters([P("filter.ewma_rate", value=0.05)])
-    assert result.successful and node._estimator.observer.settings.ewma_rate == 0.05
-    assert node._estimator.config.filter.ewma_rate == 0.05
+    [result] = node.set_parameters([P("filter.ewma_time", value=0.04)])
+    assert result.successful and node._estimator.observer.settings.ewma_time == 0.04
+    assert node._estimator.config.filter.ewma_time == 0.04
     [result] = node.set_parameters([P("wrench.damping", value=1)])          # an integer is a number too
     assert result.successful and node._estimator.config.wrench.damping == 1.0
     [result] = node.set_parameters([P("contact.confidence", value=0.999)])
@@ -517,7 +517,8 @@ def test_runtime_parameter_changes(ros, make_node):
     assert result.successful
 
     for name, value in (("observer", "kf"), ("robot_model.urdf", "/tmp/x.urdf"), ("filter.vb_iterations", 5),
-                        ("input.queue_depth", 20), ("residual_model.model_dir", "/tmp"), ("torque_source", "x")):
+                        ("input.queue_depth", 20), ("residual_model.model_dir", "/tmp"),
+                        ("input.torque_source", "joint_states_effort"), ("output.qos", "sensor_data")):
         [result] = node.set_parameters([P(name, value=value)])
         assert not result.successful and name in result.reason and "read-only" in result.reason
     for name, value, text in (("contact.confidence", 1.5, "out of range"), ("wrench.frame", "tool", "end_effector"),
@@ -538,8 +539,8 @@ def test_bad_configuration_fails_at_start_naming_the_key(ros, make_node):
         make_node(observer="nope")
     with pytest.raises(ros.exceptions.InvalidParameterValueException, match="wrench.damping"):
         make_node(wrench__damping=99.0)
-    with pytest.raises(ros.node.ConfigError, match="'torque_source'"):
-        make_node(torque_source="telepathy")
+    with pytest.raises(ros.node.ConfigError, match="'input.torque_source'"):
+        make_node(input__torque_source="telepathy")
 
 
 def test_reset_and_reload_services(ros, make_node, contact_bag, model_dir, tmp_path):
@@ -584,7 +585,8 @@ def test_missing_model_keeps_the_node_up_with_an_error_diagnostic(ros, make_node
 def test_urdf_from_the_robot_description_topic(ros, make_node, contact_bag):
     from kvark_ros.core.robot_model import resolve_urdf
     node = make_node(robot_model__urdf="robot_description")
-    assert node._estimator is None
+    assert node._config.urdf == "robot_description", "a URDF source, not a path to resolve"
+    assert node._estimator is None and node._model_problem.startswith("waiting for the URDF")
     assert not ros.core.GRAPH.call(f"{OUT}/reload_model").success
     ros.core.set_time(1.0)
     assert "robot_description" in diagnostics(ros)["model"].message
@@ -597,7 +599,7 @@ def test_urdf_from_the_robot_description_topic(ros, make_node, contact_bag):
 
 
 def test_joint_state_effort_as_torque_source(ros, make_node, contact_bag):
-    node = make_node(torque_source="joint_states_effort")
+    node = make_node(input__torque_source="joint_states_effort")
     assert "/effort_commands" not in ros.core.GRAPH.subscriptions
     feed(ros, [m for m in bag_messages(ros, contact_bag)[:200] if m[1] == "/joint_states"])
     assert len(outputs(ros).stamp) == 99 and node._counts.total() == 0
@@ -685,7 +687,7 @@ def test_joint_state_commands_as_torque_source(ros, make_node, contact_bag):
             names = msg.layout.dim[0].label.split(",")
             msg = ros.sensor.JointState(name=names[::-1], effort=array.array("d", msg.data[::-1]))
         converted.append((log_ns, topic, msg))
-    node = make_node(torque_source="effort_commands_joint_state")
+    node = make_node(input__torque_source="effort_commands_joint_state")
     feed(ros, converted)
     got = outputs(ros)
     assert np.array_equal(got.stamp, plain.stamp) and np.array_equal(got.tau, plain.tau)

@@ -22,13 +22,21 @@ residual model would have removed, so the residual's mean enters as uncertainty 
 Debounce: the published flag changes only after the raw test result has differed from it
 for ``debounce`` seconds of sample time (stamps, not wall time); ``debounce = 0`` follows the
 raw result.
+
+Collision (:class:`CollisionDetector`): a second flag, per joint and without debounce, for the
+hard hits a reaction must not wait for. It is raised on the sample where some joint's torque
+exceeds ``collision_torque`` (N·m) by more than its own two-sided interval,
+``|τ̂_j| − z σ_j > collision_torque`` with ``z = Φ⁻¹((1 + confidence)/2)`` and ``σ_j = √S_jj``
+from the same S, and cleared on the first sample where no joint does. The contact flag says
+"something touches the robot" (statistically, over all joints); the collision flag says "a joint
+carries more than collision_torque beyond doubt".
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.stats import chi2, norm
 
 
 def contact_covariance(tau_cov: np.ndarray | None, residual_mean: np.ndarray, residual_var: np.ndarray,
@@ -112,4 +120,52 @@ class ContactDetector:
             if stamp - self._since >= self.debounce:
                 self.flag = raw
                 self._since = None
+        return self.flag
+
+
+class CollisionDetector:
+    """``max_j(|τ̂_j| − z σ_j) > collision_torque``, no debounce (module docstring).
+
+    ``update`` returns the flag; ``excess`` is the last ``max_j(|τ̂_j| − z σ_j)`` (N·m), for
+    ``/diagnostics`` and for choosing ``collision_torque``. A covariance whose diagonal is not
+    finite leaves the flag unchanged.
+    """
+
+    def __init__(self, confidence: float, collision_torque: float) -> None:
+        self._confidence: float | None = None
+        self.z = math.nan
+        self.collision_torque = math.nan
+        self.configure(confidence, collision_torque)
+        self.reset()
+
+    def configure(self, confidence: float, collision_torque: float) -> None:
+        """Set the interval's confidence (z recomputed only if it changed) and the torque limit (N·m)."""
+        if not 0.0 < confidence < 1.0:
+            raise ValueError(f"contact confidence must be in (0, 1), got {confidence}")
+        if not collision_torque > 0.0:
+            raise ValueError(f"collision torque must be > 0 N·m, got {collision_torque}")
+        if confidence != self._confidence:
+            self.z = float(norm.ppf(0.5 + 0.5 * confidence))        # two-sided: P(|x| ≤ z σ) = confidence
+            self._confidence = confidence
+        self.collision_torque = float(collision_torque)
+
+    def reset(self) -> None:
+        """No collision (after a filter reset)."""
+        self.flag = False
+        self.excess = math.nan
+
+    def continue_from(self, other: "CollisionDetector") -> None:
+        """Take over ``other``'s flag and last excess (a rebuilt estimator continuing)."""
+        self.flag, self.excess = other.flag, other.excess
+
+    def update(self, tau: np.ndarray, covariance: np.ndarray | None) -> bool:
+        """Test one estimate: τ̂ (n,) N·m and S (n, n) N²·m² (``None``: σ = 0); return the flag."""
+        if covariance is None:
+            excess = float(np.abs(tau).max())
+        else:       # np.maximum keeps a NaN variance NaN, and so the excess: the flag holds then
+            excess = float((np.abs(tau) - self.z * np.sqrt(np.maximum(np.diagonal(covariance), 0.0))).max())
+            if not math.isfinite(excess):
+                return self.flag
+        self.excess = excess
+        self.flag = excess > self.collision_torque
         return self.flag

@@ -1,30 +1,39 @@
 """The estimator: robot model + observer, one call per sample.
 
 The same object runs behind the ROS node and the bag replay, so live and offline results
-are identical for identical inputs.
+are identical for identical inputs. Per sample: the observer's τ̂_ext, minus the tare offset
+(``kvark_ros.core.tare``), mapped to the wrench and tested for contact and collision
+(``kvark_ros.core.contact``). At run time the payload (``set_payload``), the tare
+(``start_tare``/``clear_tare``) and the run-time config keys (``configure``) may change between
+two samples; the filter continues.
 """
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from kvark_ros.core.augmentation import Augmentation, AugmentationError, load_augmentation
 from kvark_ros.core.config import EstimatorConfig
-from kvark_ros.core.contact import ContactDetector, contact_covariance
+from kvark_ros.core.contact import CollisionDetector, ContactDetector, contact_covariance
 from kvark_ros.core.model_store import TrainedModel, load_model
 from kvark_ros.core.observers import Observer, ResidualPredictor, make_observer
+from kvark_ros.core.payload import Payload, inertia_problem
 from kvark_ros.core.robot_model import RobotModel, urdf_sha256
+from kvark_ros.core.tare import Tare
 
 
 @dataclass(frozen=True)
 class Estimate:
     """One output sample; torque acting on the robot (docs/method.md §1.2).
 
-    tau_ext: (n,) N·m; tau_cov: (n, n) N²·m²; wrench: (6,) [N, N·m] at the end-effector frame
-    origin, axes of ``wrench_frame``; wrench_cov: (6, 6). The covariances are ``None`` for
-    observers that report no uncertainty. contact: the debounced contact flag (docs/method.md §7).
+    tau_ext: (n,) N·m, tared (``Estimator.start_tare``); tau_cov: (n, n) N²·m²; wrench: (6,) [N, N·m]
+    at the end-effector frame origin, axes of ``wrench_frame`` (config ``wrench.frame``: ``base`` or
+    ``end_effector``); wrench_cov: (6, 6), same axes. The covariances are ``None`` for observers that
+    report no uncertainty. contact: the debounced contact flag (docs/method.md §7); collision: the
+    undebounced per-joint collision flag (``kvark_ros.core.contact``). ee_rotation: (3, 3) rotation of
+    the ee_frame axes in base axes, R (``v_base = R v_ee``), for ``wrench_in``.
     """
 
     stamp: float
@@ -33,6 +42,29 @@ class Estimate:
     wrench: np.ndarray
     wrench_cov: np.ndarray | None
     contact: bool
+    collision: bool
+    wrench_frame: str
+    ee_rotation: np.ndarray
+
+    def wrench_in(self, frame: str) -> np.ndarray:
+        """The wrench (6,) in ``base`` or ``end_effector`` axes, same reference point (the ee_frame origin):
+        a pure rotation of force and torque, ``F_base = diag(R, R) F_ee`` (exact for the damped
+        pseudo-inverse too, whose ``(J Jᵀ + δ² I)`` is rotation-covariant)."""
+        if frame == self.wrench_frame:
+            return self.wrench
+        return rotate_wrench(self.ee_rotation if frame == "base" else self.ee_rotation.T, self.wrench)[0]
+
+
+def rotate_wrench(rotation: np.ndarray, wrench: np.ndarray, cov: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """A wrench (6,) and its covariance (6, 6) or None in other axes, same reference point:
+    ``F' = B F``, ``Σ' = B Σ Bᵀ`` with ``B = diag(R, R)`` and ``R`` (3, 3) the rotation to the new axes."""
+    turned = np.concatenate((rotation @ wrench[:3], rotation @ wrench[3:]))
+    if cov is None:
+        return turned, None
+    block = np.kron(np.eye(2), rotation)
+    turned_cov = block @ cov @ block.T
+    return turned, 0.5 * (turned_cov + turned_cov.T)
 
 
 class Status:
@@ -63,6 +95,20 @@ def model_augmentation(config: EstimatorConfig, trained: TrainedModel) -> Augmen
     return trained.augmentation
 
 
+def payload_problem(payload: Payload | None) -> str | None:
+    """Why ``payload`` is not a physical rigid body (``core.payload.inertia_problem``), or None (also for None).
+
+    Its 10 dynamic parameters about the flange origin: ``[m, m c, I_o]``, ``I_o = I_c + m (|c|² 𝟙 − c cᵀ)``.
+    """
+    if payload is None:
+        return None
+    m, c = float(payload.mass), np.asarray(payload.com, dtype=float)
+    ixx, iyy, izz, ixy, ixz, iyz = payload.inertia
+    origin = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]]) + m * (c @ c * np.eye(3) - np.outer(c, c))
+    return inertia_problem(np.array([m, *(m * c), origin[0, 0], origin[0, 1], origin[1, 1], origin[0, 2],
+                                     origin[1, 2], origin[2, 2]]))
+
+
 class Estimator:
     """Steps an observer on (stamp, q, q̇, τ_m) samples and maps τ_ext to a wrench.
 
@@ -71,7 +117,8 @@ class Estimator:
 
     The contact test (``contact``, a ``ContactDetector``) runs on every estimate with
     S = P + diag σ²_r(q̇) from the observer's own residual model; an observer without one falls back
-    to the trained KMP with its mean as uncertainty too (docs/method.md §7), which needs ``trained``.
+    to the trained KMP with its mean as uncertainty too (docs/method.md §7), which needs ``trained``;
+    the collision test (``collision``, a ``CollisionDetector``) uses the same S.
     """
 
     def __init__(self, config: EstimatorConfig, robot: RobotModel, observer: Observer,
@@ -86,6 +133,8 @@ class Estimator:
         # Pose inputs of the residual model in use (observer's or contact test's): g(q) costs a pinocchio pass.
         self._needs = observer.needs | frozenset(getattr(self._contact_residual, "needs", ()))
         self.contact = ContactDetector(robot.n, config.contact.confidence, config.contact.debounce)
+        self.collision = CollisionDetector(config.contact.confidence, config.contact.collision_torque)
+        self.tare = Tare(config.joint_names, config.tare.duration, config.tare.max_speed)
         self.counts: Counter[str] = Counter()
         self.status = Status.WARMUP
         self.reset()
@@ -99,8 +148,11 @@ class Estimator:
         ``urdf`` overrides ``config.urdf`` (the node passes the ``robot_description`` string);
         ``oracle`` is the true residual (the simulator's ``OracleResidual``), for the ``oracle``
         observer only, whose robot model is built on the oracle's ``urdf`` (the plant's true rigid body)
-        when it has one.
+        when it has one. A non-physical ``config.payload`` raises ``ValueError``.
         """
+        problem = payload_problem(config.payload)
+        if problem is not None:
+            raise ValueError(f"robot_model.payload: {problem}")
         name = observer or config.observer
         if name == "oracle" and urdf is None:
             urdf = getattr(oracle, "urdf", None)
@@ -114,16 +166,50 @@ class Estimator:
 
         The estimator reads ``input.max_gap`` and ``wrench.*`` from ``config``; the observer takes
         ``config.filter`` (``Observer.configure``: a changed key that is not run-time raises
-        ``ValueError`` and nothing changes).
+        ``ValueError`` and nothing changes), a changed ``config.payload`` goes to ``set_payload``
+        (a non-physical one raises ``ValueError`` first, and nothing changes).
         """
+        problem = payload_problem(config.payload)
+        if problem is not None:
+            raise ValueError(f"robot_model.payload: {problem}")
         self.observer.configure(config.filter)
         self.contact.configure(config.contact.confidence, config.contact.debounce)
+        self.collision.configure(config.contact.confidence, config.contact.collision_torque)
+        self.tare.configure(config.tare.duration, config.tare.max_speed)
+        if config.payload != self.robot.payload:
+            self.robot.set_payload(config.payload)
         self.config = config
 
+    def set_payload(self, payload: Payload | None) -> None:
+        """Replace the known payload at the flange (``None``: none) from the next sample; the filter continues.
+
+        ``RobotModel.set_payload`` puts the flange link's inertia back to the model's (augmented) own and
+        adds the payload, so the model is the one ``RobotModel.from_config`` builds with that payload.
+        Set it at rest: while moving, the momentum jump ΔM q̇ between the two samples enters τ̂ once.
+        A non-physical payload raises ``ValueError`` (the reason) and changes nothing.
+        """
+        problem = payload_problem(payload)
+        if problem is not None:
+            raise ValueError(f"payload refused: {problem}")
+        self.robot.set_payload(payload)
+        self.config = replace(self.config, payload=payload)
+
+    def start_tare(self) -> None:
+        """Average τ̂_ext over ``tare.duration`` s at rest, then subtract it (``kvark_ros.core.tare``);
+        ``TareError`` says why it cannot start (no sample yet, moving). Progress: ``tare.state``."""
+        self.tare.start()
+
+    def clear_tare(self) -> None:
+        """Stop subtracting a tare offset (and abort an averaging)."""
+        self.tare.clear()
+
     def reset(self) -> None:
-        """Restart from the next sample (filter state, previous sample and contact state forgotten)."""
+        """Restart from the next sample (filter state, previous sample, contact and collision state forgotten;
+        a tare offset stays, an averaging under way is aborted)."""
         self.observer.reset()
         self.contact.reset()
+        self.collision.reset()
+        self.tare.interrupt("the filter restarted")
         self._stamp: float | None = None
         self._p_prev = np.zeros(self.robot.n)
         self._u_prev = np.zeros(self.robot.n)
@@ -131,10 +217,10 @@ class Estimator:
     def continue_from(self, other: "Estimator") -> None:
         """Continue from ``other``'s state, so that swapping it for this one changes no output (model reload).
 
-        Copies the previous sample (stamp, p, u), ``status``, the observer's filter state and the
-        contact detector's state; ``counts`` stay this estimator's own. Raises ``ValueError`` (and
-        changes nothing) unless both have the same joints and the same observer class and name, or
-        if the observer states do not fit (``Observer.load_state``).
+        Copies the previous sample (stamp, p, u), ``status``, the observer's filter state, the
+        contact and collision detectors' state and the tare; ``counts`` stay this estimator's own.
+        Raises ``ValueError`` (and changes nothing) unless both have the same joints and the same
+        observer class and name, or if the observer states do not fit (``Observer.load_state``).
         """
         if self.config.joint_names != other.config.joint_names:
             raise ValueError("cannot continue from an estimator with other joints")
@@ -147,6 +233,8 @@ class Estimator:
         self._p_prev, self._u_prev = other._p_prev.copy(), other._u_prev.copy()
         self.status = other.status
         self.contact.continue_from(other.contact)
+        self.collision.continue_from(other.collision)
+        self.tare.continue_from(other.tare)
 
     def _reject(self, status: str) -> None:
         self.status = status
@@ -184,8 +272,14 @@ class Estimator:
             return None
         g = self.robot.gravity(q) if "g" in self._needs else None
         tau_ext, tau_cov = self.observer.step(stamp - previous, qd, p, p_prev, u_prev, q, g)
-        wrench, wrench_cov = self.robot.wrench_from_torque(q, tau_ext, tau_cov, self.config.wrench.damping,
-                                                           self.config.wrench.frame)
+        tau_ext = self.tare.apply(stamp, qd, tau_ext)         # τ̂ − offset (a non-finite τ̂ resets below)
+        frame = self.config.wrench.frame
+        # One Jacobian per sample, in base axes: that pass also places the ee frame (data.oMf), whose rotation R
+        # gives the ee axes, F_ee = diag(Rᵀ, Rᵀ) F_base (the damped pseudo-inverse is rotation-covariant).
+        wrench, wrench_cov = self.robot.wrench_from_torque(q, tau_ext, tau_cov, self.config.wrench.damping, "base")
+        rotation = self.robot.data.oMf[self.robot.ee_frame_id].rotation.copy()
+        if frame != "base":
+            wrench, wrench_cov = rotate_wrench(rotation.T, wrench, wrench_cov)
         total = tau_ext.sum() + (0.0 if tau_cov is None else tau_cov.sum() + wrench_cov.sum())
         if not np.isfinite(total):
             self.reset()
@@ -193,20 +287,20 @@ class Estimator:
             return None
         self.status = Status.OK
         self.counts[Status.OK] += 1
-        flag = self._contact_flag(stamp, q, qd, g, tau_ext, tau_cov)
-        return Estimate(stamp, tau_ext, tau_cov, wrench, wrench_cov, flag)
+        covariance = self._test_covariance(q, qd, g, tau_cov)
+        contact = self.contact.flag if covariance is None else self.contact.update(stamp, tau_ext, covariance)
+        collision = self.collision.update(tau_ext, covariance)
+        return Estimate(stamp, tau_ext, tau_cov, wrench, wrench_cov, contact, collision, frame, rotation)
 
-    def _contact_flag(self, stamp: float, q: np.ndarray, qd: np.ndarray, g: np.ndarray | None, tau_ext: np.ndarray,
-                      tau_cov: np.ndarray | None) -> bool:
-        """The debounced contact flag after this estimate (class docstring); unchanged without a covariance."""
+    def _test_covariance(self, q: np.ndarray, qd: np.ndarray, g: np.ndarray | None,
+                         tau_cov: np.ndarray | None) -> np.ndarray | None:
+        """S of the contact and collision tests (class docstring); None without a covariance and a residual
+        model (the contact flag then stays, the collision test takes σ = 0)."""
         if self.observer.uses_residual_model:
             mean, variance = self.observer.prediction
         elif self._contact_residual is not None:
             mean, variance = (self._contact_residual.predict(qd, q, g) if self._contact_residual.needs
                               else self._contact_residual.predict(qd))
-        elif tau_cov is None:
-            return self.contact.flag
         else:
-            return self.contact.update(stamp, tau_ext, tau_cov)
-        covariance = contact_covariance(tau_cov, mean, variance, self.observer.uses_residual_model)
-        return self.contact.update(stamp, tau_ext, covariance)
+            return tau_cov
+        return contact_covariance(tau_cov, mean, variance, self.observer.uses_residual_model)

@@ -1,5 +1,5 @@
 """The ROS 2 adapter of kvark_ros: the ``kvark_estimator`` node (``estimator_node``), its parameters
-(``parameters``) and its ``/diagnostics`` statuses (``diagnostics``).
+(``parameters``), its estimate topics (``publishers``) and its ``/diagnostics`` statuses (``diagnostics``).
 
 Only this package imports rclpy and ROS message types; every rule it applies (pairing, contact
 test, config) lives in ``kvark_ros.core``, ROS-free, so the suite tests it without ROS. Importing

@@ -1,7 +1,8 @@
-"""The node's ``/diagnostics`` statuses (model, input, filter), built from plain numbers.
+"""The node's ``/diagnostics`` statuses (model, input, filter, tare), built from plain numbers.
 
-Kept apart from the node so that the node is the adapter only; every text and threshold here is what
-``/diagnostics`` has shown since the node exists.
+Kept apart from the node so that the node is the adapter only. ``filter`` shows the contact and the
+collision test, ``tare`` the tare's state (idle, averaging, active), its offset per joint (N·m) and
+the outcome of the last request.
 """
 from __future__ import annotations
 
@@ -14,7 +15,9 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
 from kvark_ros.core.estimator import Status
+from kvark_ros.core.model_checks import model_warnings
 from kvark_ros.core.pairing import Reject
+from kvark_ros.core.tare import Tare
 
 SERVICE_RESET = "reset: ~/reset service"
 NOT_READY = "dropped: no estimator (model not loaded or waiting for robot_description)"
@@ -48,18 +51,26 @@ class StatusBuilder:
                                 hardware_id=self.hardware_id,
                                 values=[KeyValue(key=key, value=str(value)) for key, value in values.items()])
 
-    def model(self, config: Any, urdf_in_use: str, torque_source: str, estimator: Any, problem: str,
-              reload_problem: str | None) -> DiagnosticStatus:
-        """ERROR without an estimator (``problem`` says why), WARN after a failed reload, else OK."""
+    def model(self, config: Any, urdf_in_use: str, estimator: Any, problem: str,
+              reload_problem: str | None, data_rate: float = math.nan) -> DiagnosticStatus:
+        """ERROR without an estimator (``problem`` says why), WARN after a failed reload or when the model does not
+        fit the data (``core.model_checks``: rate ``data_rate`` Hz off by more than 20 %, another robot), else OK."""
+        payload = config.payload
         values = {"model_dir": config.model_dir, "observer": config.observer, "urdf": urdf_in_use or config.urdf,
-                  "joints": ",".join(config.joint_names), "torque_source": torque_source}
+                  "joints": ",".join(config.joint_names), "torque_source": config.input.torque_source,
+                  "payload": "none" if payload is None else f"{payload.mass:g} kg at {list(payload.com)} m"}
         if estimator is None:
             return self.status(2, "model", f"no estimator: {problem}", values)
         info = estimator.trained.info
         values.update({"trained_samples": info.get("samples", "?"), "trained_with": info.get("kvark_ros_version", "?"),
                        "residual_compensated": estimator.observer.uses_residual_model})
+        values.update({"model_sample_rate_hz": f"{estimator.trained.sample_rate:.1f}",
+                       "data_rate_hz": f"{data_rate:.1f}"})
         if reload_problem is not None:
             return self.status(1, "model", f"last reload failed, previous model kept: {reload_problem}", values)
+        warnings = model_warnings(estimator.trained, config.robot, data_rate, simulated=None)
+        if warnings:
+            return self.status(1, "model", "; ".join(line.removeprefix("warning: ") for line in warnings), values)
         return self.status(0, "model", "model loaded", values)
 
     def input(self, window: Window, totals: dict[str, Any], missing_detail: str) -> DiagnosticStatus:
@@ -88,15 +99,19 @@ class StatusBuilder:
             return self.status(1, "input", f"input {rate_in:.0f} Hz, output {rate_out:.0f} Hz; {summary}", values)
         return self.status(0, "input", f"input {rate_in:.0f} Hz, output {rate_out:.0f} Hz", values)
 
-    def filter(self, window: Window, contact: Any, covariance: np.ndarray | None,
+    def filter(self, window: Window, estimator: Any, covariance: np.ndarray | None,
                covariance_note: str) -> DiagnosticStatus:
         """ERROR if P is not finite positive definite, WARN after a reset in this window, else the contact
-        state (``contact``: the estimator's ContactDetector, None without an estimator)."""
+        and collision state (``estimator``: None without one)."""
         values: dict[str, Any] = {key: window.counts.get(key, 0) for key in RESETS}
-        if contact is not None:
+        contact = None if estimator is None else estimator.contact
+        if estimator is not None:
+            collision = estimator.collision
             values.update({"contact": contact.flag, "contact_statistic": f"{contact.statistic:.3g}",
                            "contact_threshold": f"{contact.threshold:.3g}", "contact_confidence": contact.confidence,
-                           "contact_covariance_not_positive_definite": contact.invalid_covariances})
+                           "contact_covariance_not_positive_definite": contact.invalid_covariances,
+                           "collision": collision.flag, "collision_excess_nm": f"{collision.excess:.3g}",
+                           "collision_torque_nm": f"{collision.collision_torque:g}"})
         healthy = True
         if covariance is None:
             values["P"] = covariance_note
@@ -113,4 +128,17 @@ class StatusBuilder:
         if resets.get(Status.DIVERGED_RESET) or resets.get(Reject.TIME_JUMP) or resets.get(Status.GAP_RESET):
             text = "; ".join(f"{number} × {key}" for key, number in resets.items())
             return self.status(1, "filter", text, values)
-        return self.status(0, "filter", "contact" if contact is not None and contact.flag else "no contact", values)
+        state = "contact" if contact is not None and contact.flag else "no contact"
+        if estimator is not None and estimator.collision.flag:
+            state = "collision"
+        return self.status(0, "filter", state, values)
+
+    def tare(self, tare: Tare | None) -> DiagnosticStatus:
+        """The tare's state and offset per joint (N·m); WARN when the last averaging was aborted."""
+        if tare is None:
+            return self.status(0, "tare", "idle (no estimator)", {"state": "idle"})
+        values: dict[str, Any] = {"state": tare.state, "last": tare.note, "samples": tare.samples,
+                                  "duration_s": f"{tare.duration:g}", "max_speed_rad_s": f"{tare.max_speed:g}"}
+        values.update({f"offset_nm {name}": f"{value:.4f}" for name, value in zip(tare.joint_names, tare.offset)})
+        level = 1 if tare.aborted else 0
+        return self.status(level, "tare", f"{tare.state}: {tare.note}", values)

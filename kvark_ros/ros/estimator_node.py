@@ -5,11 +5,18 @@ Run ``ros2 launch kvark_ros estimator.launch.py`` (or ``ros2 run kvark_ros estim
 paired with commands by ``kvark_ros.core.pairing`` and every number comes from
 ``kvark_ros.core.estimator.Estimator.step``, the same code ``kvark replay`` runs over a bag.
 
-Topics, services and parameters: the README's tables. In: ``joint_states``, ``effort_commands``
-(Float64MultiArray, or JointState with ``torque_source: effort_commands_joint_state``),
-``robot_description``; out: ``~/external_joint_torque``, ``~/external_wrench``,
-``~/external_joint_torque_stddev``, ``~/external_wrench_covariance``, ``~/contact``, ``/diagnostics``;
-services ``~/reset``, ``~/reload_model``.
+Topics, services and parameters: the README's tables. In: ``input.joint_states_topic``
+(``joint_states``), ``input.effort_commands_topic`` (``effort_commands``: Float64MultiArray, or
+JointState with ``input.torque_source: effort_commands_joint_state``), ``robot_description``; out:
+the estimate topics of ``kvark_ros.ros.publishers`` (τ_ext, the wrench in base and ee_frame axes,
+the uncertainty, the contact and collision flags; QoS ``output.qos``) and ``/diagnostics``;
+services ``~/reset`` (also clears the tare), ``~/reload_model`` and ``~/tare``.
+
+``~/tare`` starts averaging τ_ext over ``tare.duration`` s of sample time at rest
+(``kvark_ros.core.tare``) and returns at once: a service callback that waited for the samples would
+hold an executor thread for a second (and deadlock a single-threaded executor, which runs the
+inputs too). It refuses while the robot moves; the outcome (averaging, active with the offset per
+joint, or aborted and why) is on ``/diagnostics`` (``…: tare``).
 
 Pairing: see ``kvark_ros.core.pairing``. Each message is ordered by when it was published (its
 message info's source timestamp; the receive time where the middleware gives none), so an executor
@@ -20,12 +27,17 @@ report the full measured joint torque, e.g. franka_ros2) and nothing is paired. 
 a zero stamp (a driver that never fills it) is stamped with its receive time on the node clock,
 except the first one after start or a reset (simulated bags start at 0 s).
 
+Run-time payload: ``robot_model.payload.*`` changed by ``ros2 param set`` go through
+``Estimator.configure`` (``Estimator.set_payload``) between two samples, under the lock; the filter
+continues. A non-physical payload is refused by the on-set callback with the reason.
+
 Robustness: every rejected message is counted per reason and summarised on ``/diagnostics``;
 nothing is logged per message, nothing non-finite is published (the Estimator never returns a
 non-finite estimate).
 
-Parameters: the config keys (``kvark_ros.ros.parameters``) plus ``torque_source``; relative paths
-resolve against the package's share directory, then the source tree, then the working directory.
+Parameters: the config keys (``kvark_ros.ros.parameters``); relative paths resolve against the
+package's config folder (share/kvark_ros/config, else the source tree's config/), as ``kvark``
+resolves them against the config file's folder; the launch file makes them absolute first.
 
 Threads: ``main`` spins a two-thread executor. Inputs, outputs and ``/diagnostics`` share one
 mutually exclusive callback group, the services another, so ``~/reload_model`` builds the new
@@ -37,7 +49,7 @@ only while someone subscribes (checked at every ``/diagnostics`` tick and every 
 """
 from __future__ import annotations
 
-import array
+import math
 import sys
 import threading
 from collections import Counter
@@ -46,26 +58,26 @@ from typing import Any
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import WrenchStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import DurabilityPolicy, QoSProfile, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Bool, Float64MultiArray, Header, MultiArrayDimension, MultiArrayLayout, String
+from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
-from kvark_ros.core.config import NODE_NAME, ConfigError
-from kvark_ros.core.estimator import Estimate, Estimator
+from kvark_ros.core.config import NODE_NAME, ROBOT_DESCRIPTION, ConfigError
+from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.pairing import RESET, JointColumns, Reject, Sample, StreamPairer, stamp_seconds
+from kvark_ros.core.tare import TareError
 from kvark_ros.ros import parameters
 from kvark_ros.ros.diagnostics import NOT_READY, SERVICE_RESET, StatusBuilder, Window
+from kvark_ros.ros.publishers import SUBSCRIBER_CHECK, EstimatePublishers, qos_profile
 
-URDF_FROM_TOPIC = "robot_description"
-WRENCH_AXES = ("force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z")
-SUBSCRIBER_CHECK = 100          # estimates between checks whether anyone subscribes to the uncertainty topics
+URDF_FROM_TOPIC = ROBOT_DESCRIPTION
+__all__ = ["EstimatorNode", "main", "Drop", "SUBSCRIBER_CHECK", "ConfigError"]
 _BUILD_ERRORS = (ValueError, OSError, RuntimeError, KeyError, TypeError, np.linalg.LinAlgError)
 
 
@@ -76,11 +88,6 @@ class Drop(Reject):
     SERVICE_RESET = SERVICE_RESET
 
 
-def _doubles(values: np.ndarray) -> array.array:
-    """float64[] message field from a numpy array (rclpy takes array.array('d'), not ndarray)."""
-    return array.array("d", np.ascontiguousarray(values, dtype=np.float64).tobytes())
-
-
 class EstimatorNode(Node):
     """The ``kvark_estimator`` node (module docstring). ``kwargs`` go to ``rclpy.node.Node``."""
 
@@ -88,8 +95,7 @@ class EstimatorNode(Node):
         super().__init__(NODE_NAME, **kwargs)
         parameters.declare(self)
         self._config = config = parameters.read_config(self)
-        self._torque_source = parameters.torque_source(self)
-        self._names = list(config.joint_names)
+        self._torque_source = config.input.torque_source
         self._n = config.n_joints
         self._columns = JointColumns(config.joint_names)
         self._counts: Counter[str] = Counter()      # the node's and the pairing's reasons
@@ -105,43 +111,34 @@ class EstimatorNode(Node):
         self._told_about_description = False
         self._missing_detail = ""
         self._archived: Counter[str] = Counter()     # Status counts of estimators replaced by a reload
-        self._received = self._published = 0
+        self._received = 0
         self._last_covariance: np.ndarray | None = None
         self._diag_time = self.get_clock().now().nanoseconds / 1e9
         self._diag_received = self._diag_published = self._diag_lost = 0
         self._diag_counts: Counter[str] = Counter()
         self._statuses = StatusBuilder(self.get_fully_qualified_name(), config.robot)
-        self._uncertainty_wanted = False
-        label = ",".join(self._names)
-        self._stddev_layout = MultiArrayLayout(dim=[MultiArrayDimension(label=label, size=self._n, stride=self._n)])
-        self._covariance_layout = MultiArrayLayout(dim=[
-            MultiArrayDimension(label="row: " + ",".join(WRENCH_AXES), size=6, stride=36),
-            MultiArrayDimension(label="column: " + ",".join(WRENCH_AXES), size=6, stride=6)])
 
-        sensor_qos = QoSProfile(history=qos_profile_sensor_data.history, depth=config.input.queue_depth,
-                                reliability=qos_profile_sensor_data.reliability,
-                                durability=qos_profile_sensor_data.durability)
-        output_qos = QoSProfile(depth=config.input.queue_depth)
-        self._pub_torque = self.create_publisher(JointState, "~/external_joint_torque", output_qos)
-        self._pub_wrench = self.create_publisher(WrenchStamped, "~/external_wrench", output_qos)
-        self._pub_stddev = self.create_publisher(Float64MultiArray, "~/external_joint_torque_stddev", output_qos)
-        self._pub_covariance = self.create_publisher(Float64MultiArray, "~/external_wrench_covariance", output_qos)
-        self._pub_contact = self.create_publisher(Bool, "~/contact", output_qos)
+        sensor_qos = qos_profile("sensor_data", config.input.queue_depth)
+        self._outputs = EstimatePublishers(self, config.joint_names,
+                                           qos_profile(config.output.qos, config.input.queue_depth))
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
         self._inputs = MutuallyExclusiveCallbackGroup()
         services = MutuallyExclusiveCallbackGroup()
-        self.create_subscription(JointState, "joint_states", self._on_joint_state, sensor_qos,
+        inputs = config.input
+        self.create_subscription(JointState, inputs.joint_states_topic, self._on_joint_state, sensor_qos,
                                  callback_group=self._inputs)
         if self._torque_source == "effort_commands":
-            self.create_subscription(Float64MultiArray, "effort_commands", self._on_command_array, sensor_qos,
-                                     callback_group=self._inputs)
+            self.create_subscription(Float64MultiArray, inputs.effort_commands_topic, self._on_command_array,
+                                     sensor_qos, callback_group=self._inputs)
         elif self._stamped_commands:
-            self.create_subscription(JointState, "effort_commands", self._on_command_state, sensor_qos,
+            self.create_subscription(JointState, inputs.effort_commands_topic, self._on_command_state, sensor_qos,
                                      callback_group=self._inputs)
         self.create_subscription(String, "robot_description", self._on_robot_description,
-                                 QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL), callback_group=services)
+                                 QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL),
+                                 callback_group=services)
         self.create_service(Trigger, "~/reset", self._on_reset, callback_group=services)
         self.create_service(Trigger, "~/reload_model", self._on_reload_model, callback_group=services)
+        self.create_service(Trigger, "~/tare", self._on_tare, callback_group=services)
         self._timer = self.create_timer(config.diagnostics.period, self._publish_diagnostics,
                                         callback_group=self._inputs)
         self.add_on_set_parameters_callback(lambda changed: parameters.check_update(self, changed))
@@ -155,7 +152,7 @@ class EstimatorNode(Node):
             if problem is not None:
                 self._model_problem = problem
                 self.get_logger().error(f"no estimator: {problem} (fix it, then call ~/reload_model)")
-        self._check_subscribers()
+        self._outputs.check_subscribers()
         self.get_logger().info(
             f"observer {config.observer}, {self._n} joints, model {config.model_dir}, "
             f"torque from {self._torque_source}; outputs under {self.get_fully_qualified_name()}/")
@@ -163,11 +160,12 @@ class EstimatorNode(Node):
     # ------------------------------------------------------------------ parameters
 
     def _apply_parameters(self, changed: list[Parameter]) -> None:
-        """Post-set callback: the config with the new run-time values, applied to everything that uses them."""
+        """Post-set callback: the config with the new run-time values, applied to everything that uses them
+        (a payload through ``Estimator.configure``: the model changes between two samples)."""
         names = [p.name for p in changed if p.name in parameters.RUNTIME_KEYS]
         if not names:
             return
-        config = parameters.read_config(self)             # read-only keys cannot differ: the on-set callback refused them
+        config = parameters.read_config(self)       # read-only keys cannot differ: the on-set callback refused them
         with self._lock:
             previous, self._config = self._config, config
             if self._estimator is not None:
@@ -320,33 +318,12 @@ class EstimatorNode(Node):
             else:
                 estimate = self._estimator.step(sample.stamp, sample.q, sample.qd, sample.tau_m)
                 if estimate is not None:
-                    self._publish(estimate, sample.tag)
+                    self._outputs.publish(estimate, sample.tag, self._base_frame, self._config.ee_frame)
+                    self._last_covariance = estimate.tau_cov
 
-    def _publish(self, estimate: Estimate, stamp_msg: Any) -> None:
-        covariance = estimate.tau_cov
-        self._pub_torque.publish(JointState(header=Header(stamp=stamp_msg), name=self._names,
-                                            effort=_doubles(estimate.tau_ext)))
-        fx, fy, fz, tx, ty, tz = estimate.wrench.tolist()
-        wrench = WrenchStamped()
-        wrench.header.stamp = stamp_msg
-        wrench.header.frame_id = self._base_frame if self._config.wrench.frame == "base" else self._config.ee_frame
-        force, torque = wrench.wrench.force, wrench.wrench.torque
-        force.x, force.y, force.z, torque.x, torque.y, torque.z = fx, fy, fz, tx, ty, tz
-        self._pub_wrench.publish(wrench)
-        if covariance is not None and self._uncertainty_wanted:
-            stddev = np.sqrt(np.maximum(np.diag(covariance), 0.0))
-            self._pub_stddev.publish(Float64MultiArray(layout=self._stddev_layout, data=_doubles(stddev)))
-            self._pub_covariance.publish(Float64MultiArray(layout=self._covariance_layout,
-                                                           data=_doubles(estimate.wrench_cov.ravel())))
-        self._pub_contact.publish(Bool(data=estimate.contact))
-        self._last_covariance = covariance
-        self._published += 1
-        if self._published % SUBSCRIBER_CHECK == 0:
-            self._check_subscribers()
-
-    def _check_subscribers(self) -> None:
-        self._uncertainty_wanted = (self._pub_stddev.get_subscription_count() > 0
-                                    or self._pub_covariance.get_subscription_count() > 0)
+    @property
+    def _published(self) -> int:
+        return self._outputs.published
 
     # ------------------------------------------------------------------ services
 
@@ -357,10 +334,30 @@ class EstimatorNode(Node):
             return response
         with self._lock:
             self._estimator.reset()
+            self._estimator.clear_tare()
             self._pairer.reset()
             self._counts[Drop.SERVICE_RESET] += 1
         response.success = True
-        response.message = "filter reset; the next joint state starts a new estimate"
+        response.message = "filter reset and tare cleared; the next joint state starts a new estimate"
+        return response
+
+    def _on_tare(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Start averaging τ_ext at rest and return (module docstring); refused without an estimator or in motion."""
+        response.success = False
+        if self._estimator is None:
+            response.message = f"no estimator to tare: {self._model_problem}"
+            return response
+        with self._lock:
+            try:
+                self._estimator.start_tare()
+            except TareError as exc:
+                response.message = f"tare refused: {exc}"
+            else:
+                response.success = True
+                response.message = (f"averaging τ_ext for {self._config.tare.duration:g} s at rest, then subtracting "
+                                    f"it; progress and offset on /diagnostics ({self.get_fully_qualified_name()}: "
+                                    "tare)")
+        self.get_logger().info(response.message)
         return response
 
     def _on_reload_model(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -393,14 +390,14 @@ class EstimatorNode(Node):
         return counts
 
     def _publish_diagnostics(self) -> None:
-        self._check_subscribers()
+        self._outputs.check_subscribers()
         now = self.get_clock().now()
         seconds = now.nanoseconds / 1e9
         counts = self._all_counts()
         estimator = self._estimator
         fresh = {key: total - self._diag_counts.get(key, 0) for key, total in counts.items()
                  if total > self._diag_counts.get(key, 0)}
-        lost = self._pairer.lost
+        lost, period = self._pairer.lost, self._pairer.period
         window = Window(seconds - self._diag_time, self._received - self._diag_received,
                         self._published - self._diag_published, counts, fresh, lost - self._diag_lost,
                         self._config.diagnostics.max_loss)
@@ -411,13 +408,13 @@ class EstimatorNode(Node):
         message = DiagnosticArray()
         message.header.stamp = now.to_msg()
         message.status = [
-            self._statuses.model(self._config, self._urdf_in_use, self._torque_source, estimator,
-                                 self._model_problem, self._reload_problem),
+            self._statuses.model(self._config, self._urdf_in_use, estimator, self._model_problem,
+                                 self._reload_problem, math.nan if period is None else 1.0 / period),
             self._statuses.input(window, {"joint_states_received": self._received, "joint_states_lost": lost,
                                           "estimates_published": self._published}, self._missing_detail),
-            self._statuses.filter(window, estimator.contact if estimator is not None else None,
-                                  self._last_covariance,
-                                  "no estimate yet" if reporting else "observer reports no covariance")]
+            self._statuses.filter(window, estimator, self._last_covariance,
+                                  "no estimate yet" if reporting else "observer reports no covariance"),
+            self._statuses.tare(estimator.tare if estimator is not None else None)]
         self._pub_diagnostics.publish(message)
 
 

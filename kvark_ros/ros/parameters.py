@@ -1,9 +1,11 @@
 """The node's ROS parameters: declared from the config key table, read back into one frozen config.
 
 Every key of ``kvark_ros.core.config_schema`` becomes a parameter with a descriptor made from its row
-(meaning, allowed values, range, read-only unless the key may change at run time); the node-only
-``torque_source`` says where τ_m comes from. Validation is the config's own
-(``config_from_parameters``): one set of rules for the YAML file, the CLI and the node.
+(meaning, allowed values, range, read-only unless the key may change at run time); there are no
+node-only parameters (``input.torque_source`` replaced the former ``torque_source``). Validation is
+the config's own (``config_from_parameters``): one set of rules for the YAML file, the CLI and the
+node, plus, for a payload changed at run time, that it is a physical rigid body
+(``kvark_ros.core.estimator.payload_problem``).
 """
 from __future__ import annotations
 
@@ -18,10 +20,10 @@ from rclpy.parameter import Parameter
 
 from kvark_ros.core.config import ConfigError, EstimatorConfig, config_from_parameters, with_resolved_paths
 from kvark_ros.core.config_schema import KEYS, KEYS_BY_NAME, Key
+from kvark_ros.core.estimator import payload_problem
 
 T = Parameter.Type
-TORQUE_SOURCE = "torque_source"
-TORQUE_SOURCES = ("effort_commands", "effort_commands_joint_state", "joint_states_effort")
+PAYLOAD_PREFIX = "robot_model.payload."
 PARAMETERS: dict[str, Key] = KEYS_BY_NAME
 RUNTIME_KEYS = tuple(key.name for key in KEYS if key.runtime)
 _ROS_TYPES = {"number": T.DOUBLE, "integer": T.INTEGER, "names": T.STRING_ARRAY, "vector3": T.DOUBLE_ARRAY,
@@ -33,21 +35,19 @@ def _plain(value: Any) -> Any:
     return list(value) if isinstance(value, (array.array, tuple)) else value
 
 
-def package_roots() -> list[Path]:
-    """Where relative config paths are looked up: the installed share directory, then the source tree."""
-    roots = []
+def config_folder() -> Path | None:
+    """The folder relative config paths resolve against, as ``kvark`` resolves them against the config file's
+    folder: the installed share/kvark_ros/config, else the source tree's config/ (None: the working directory)."""
     try:
         from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
         try:
-            roots.append(Path(get_package_share_directory("kvark_ros")))
+            return Path(get_package_share_directory("kvark_ros")) / "config"
         except PackageNotFoundError:
             pass
     except ImportError:
         pass
-    source = Path(__file__).resolve().parents[2]
-    if (source / "config").is_dir():
-        roots.append(source)
-    return roots
+    source = Path(__file__).resolve().parents[2] / "config"
+    return source if source.is_dir() else None
 
 
 def descriptor(key: Key) -> ParameterDescriptor:
@@ -71,10 +71,6 @@ def declare(node: Node) -> None:
     for key in KEYS:
         default = _ROS_TYPES.get(key.kind, T.STRING) if key.default is None else key.default
         node.declare_parameter(key.name, default, descriptor(key))
-    node.declare_parameter(TORQUE_SOURCE, TORQUE_SOURCES[0], ParameterDescriptor(
-        description="where τ_m comes from: effort_commands (Float64MultiArray), effort_commands_joint_state "
-                    "(JointState effort on effort_commands), joint_states_effort (effort of joint_states)",
-        additional_constraints=f"one of {', '.join(TORQUE_SOURCES)}", read_only=True))
 
 
 def values(node: Node) -> dict[str, Any]:
@@ -91,29 +87,17 @@ def values(node: Node) -> dict[str, Any]:
 
 
 def read_config(node: Node) -> EstimatorConfig:
-    """The validated config of the node's parameters, relative paths resolved (module docstring)."""
+    """The validated config of the node's parameters, relative paths resolved against ``config_folder()``."""
     config = config_from_parameters(values(node), f"parameters of {node.get_fully_qualified_name()}")
-    for root in package_roots():
-        config = with_resolved_paths(config, root)
-    return config
-
-
-def torque_source(node: Node) -> str:
-    """The node-only ``torque_source`` parameter, checked."""
-    source = node.get_parameter(TORQUE_SOURCE).value
-    if source not in TORQUE_SOURCES:
-        raise ConfigError(f"parameters of {node.get_fully_qualified_name()}: key '{TORQUE_SOURCE}' has invalid "
-                          f"value {source!r}; allowed: one of {', '.join(TORQUE_SOURCES)}")
-    return source
+    folder = config_folder()
+    return config if folder is None else with_resolved_paths(config, folder)
 
 
 def check_update(node: Node, parameters: list[Parameter]) -> SetParametersResult:
-    """On-set callback: accept run-time keys with values the config accepts; refuse the rest with a reason."""
+    """On-set callback: accept run-time keys with values the config accepts (a payload: a physical one);
+    refuse the rest with a reason."""
     changes = {}
     for parameter in parameters:
-        if parameter.name == TORQUE_SOURCE:
-            return SetParametersResult(successful=False, reason=(
-                f"{TORQUE_SOURCE} cannot change while the node runs; restart the node with the new value"))
         key = PARAMETERS.get(parameter.name)
         if key is None:
             continue                          # not ours (use_sim_time, QoS overrides, ...)
@@ -127,7 +111,11 @@ def check_update(node: Node, parameters: list[Parameter]) -> SetParametersResult
         current = values(node)
         current.update(changes)
         try:
-            config_from_parameters(current, "parameter update")
+            config = config_from_parameters(current, "parameter update")
         except ConfigError as exc:
             return SetParametersResult(successful=False, reason=str(exc))
+        problem = payload_problem(config.payload) if any(n.startswith(PAYLOAD_PREFIX) for n in changes) else None
+        if problem is not None:
+            return SetParametersResult(successful=False, reason=(
+                f"parameter update: robot_model.payload is not a physical rigid body: {problem}"))
     return SetParametersResult(successful=True)

@@ -41,7 +41,7 @@ def test_real_benchmark_reports_false_torque_coverage_and_contacts_nominal_and_a
                  "--observers", "kvark,kf,momentum"])
     assert code == 0
     results = json.loads((out / "results.json").read_text())
-    assert results["torque_source"] == "joint_states.effort"
+    assert results["torque_source"] == "joint_states effort (the bag has no effort commands)"
     # 5 s at 500 Hz: 2 500 samples, the first 70 % of the time to train, the rest held out
     assert results["samples"]["train"] == pytest.approx(1750, abs=2)
     assert results["samples"]["held_out"] == pytest.approx(750, abs=2)

@@ -231,7 +231,8 @@ def _consistent(fitter: Fitter, terms: Sequence[Term], *fit: np.ndarray) -> tupl
     return fit
 
 
-def _inadmissible(fitter: Fitter, terms: Sequence[Term], term: Term, theta: np.ndarray) -> str | None:
+def _inadmissible(fitter: Fitter, terms: Sequence[Term], term: Term, theta: np.ndarray,
+                  names: Sequence[str]) -> str | None:
     """Why a fitted candidate (added to ``terms``) is physically impossible, or None: every payload/tool and
     link change must leave its body physically consistent; a drive gain or joint offset must not sit at its
     prior's bound."""
@@ -241,10 +242,22 @@ def _inadmissible(fitter: Fitter, terms: Sequence[Term], term: Term, theta: np.n
     if bad:
         index, body, problem = bad[0]
         name = [*terms, term][index].name
-        return f"{'flange link' if name == 'payload' else f'link of joint {body + 1}'}: {problem}"
+        return f"{'flange link' if name == 'payload' else f'link of {names[body]}'}: {problem}"
     if term.name in ("drive_gain", "joint_offset") and np.all(_at_bounds(term, mine, fitter.priors)):
         return f"{term.name} at the bound of its prior on every joint"
     return None
+
+
+def _named(joints: Sequence[int] | np.ndarray, names: Sequence[str]) -> str:
+    """Joint indices as names, for log lines."""
+    if len(joints) == len(names):
+        return "every joint"
+    return ", ".join(names[j] for j in joints) or "no joint"
+
+
+def _per_joint(values: np.ndarray, names: Sequence[str]) -> str:
+    """A value per joint (n,) with the joint's name, for log lines."""
+    return ", ".join(f"{name} {value:.4f}" for name, value in zip(names, values))
 
 
 def _affected(before: np.ndarray, after: np.ndarray) -> np.ndarray:
@@ -254,10 +267,12 @@ def _affected(before: np.ndarray, after: np.ndarray) -> np.ndarray:
 
 
 def _prune(fitter: Fitter, terms: list[Term], theta: np.ndarray, cov: np.ndarray | None, r_tr: np.ndarray,
-           r_he: np.ndarray, bic: float, log: Callable[[str], None]) -> tuple:
+           r_he: np.ndarray, bic: float, log: Callable[[str], None], names: Sequence[str]) -> tuple:
     """Backward pass over the accepted terms (module docstring, step 2): (terms, θ, covariance,
     train and held-out residuals, BIC)."""
     terms = list(terms)
+    if len(terms) > 1:
+        log(f"[diagnose] backward pass over {len(terms)} effects ...")
     while len(terms) > 1:
         after = _rmse(r_he)
         k = sum(t.size for t in terms)
@@ -272,7 +287,7 @@ def _prune(fitter: Fitter, terms: list[Term], theta: np.ndarray, cov: np.ndarray
         if not drops:
             break
         _, i, fit, rest_bic, without = min(drops, key=lambda item: item[0])
-        log(f"[diagnose] dropped {terms[i].name} {list(terms[i].joints)} (backward pass): ΔBIC "
+        log(f"[diagnose] dropped {terms[i].name} on {_named(terms[i].joints, names)} (backward pass): ΔBIC "
             f"{rest_bic - bic:+.1f}, held-out gap {np.round(after, 4).tolist()} → {np.round(without, 4).tolist()}")
         del terms[i]
         theta, cov, r_tr, r_he = fit
@@ -313,8 +328,8 @@ def _scored_candidates(fitter: Fitter, terms: Sequence[Term], r_he: np.ndarray, 
     return scored
 
 
-def _greedy(fitter: Fitter, effects: Sequence[str], n: int, first_choice: int, first_round: list[tuple],
-            log: Callable[[str], None]) -> tuple | None:
+def _greedy(fitter: Fitter, effects: Sequence[str], names: Sequence[str], first_choice: int,
+            first_round: list[tuple], log: Callable[[str], None]) -> tuple | None:
     """Forward selection and the backward pass (module docstring, step 2), starting in the first
     round from the acceptable candidate of the ``first_choice``-th distinct effect name (0 = the
     best candidate); None when the first round has fewer acceptable effects. Returns (terms, θ,
@@ -323,7 +338,9 @@ def _greedy(fitter: Fitter, effects: Sequence[str], n: int, first_choice: int, f
     theta, cov, r_tr, r_he = fitter.fit(terms)
     bic = fitter.bic(r_tr, 0)
     while True:
-        scored = first_round if not terms else _scored_candidates(fitter, terms, r_he, effects, n)
+        log(f"[diagnose] round {len(terms) + 1}: {len(effects) - len(terms)} of {len(effects)} effects to try on "
+            f"top of {[t.name for t in terms]}, held-out gap {_rmse(r_he).mean():.3f} N·m ...")
+        scored = first_round if not terms else _scored_candidates(fitter, terms, r_he, effects, len(names))
         accepted = False
         skip = first_choice if not terms else 0      # first round: effect names still to pass over
         passed: set[str] = set()
@@ -337,9 +354,9 @@ def _greedy(fitter: Fitter, effects: Sequence[str], n: int, first_choice: int, f
             new_bic = fitter.bic(rt, k)
             after = _rmse(rh)
             joints = _affected(before, after)
-            problem = _inadmissible(fitter, terms, term, th)
+            problem = _inadmissible(fitter, terms, term, th, names)
             if new_bic >= bic or len(joints) == 0 or problem is not None:
-                log(f"[diagnose]   rejected {term.name} {list(term.joints)}: ΔBIC {new_bic - bic:+.1f}, "
+                log(f"[diagnose]   rejected {term.name} on {_named(term.joints, names)}: ΔBIC {new_bic - bic:+.1f}, "
                     f"{'' if problem is None else f'not physically admissible ({problem}), '}"
                     f"held-out gap {np.round(before, 4).tolist()} → {np.round(after, 4).tolist()}")
                 continue
@@ -351,15 +368,15 @@ def _greedy(fitter: Fitter, effects: Sequence[str], n: int, first_choice: int, f
             terms.append(term)
             old_bic = bic
             theta, cov, r_tr, r_he, bic = th, cv, rt, rh, new_bic
-            log(f"[diagnose] accepted {term.name} {dict(term.variant)} on joints {list(term.joints)}: "
-                f"held-out gap of joints {joints.tolist()} −{red:.0%}, ΔBIC {new_bic - old_bic:+.0f}")
+            log(f"[diagnose] accepted {term.name} {dict(term.variant)} on {_named(term.joints, names)}: "
+                f"held-out gap of {_named(joints, names)} −{red:.0%}, ΔBIC {new_bic - old_bic:+.0f}")
             accepted = True
             break
         if not accepted:
             if not terms and first_choice:
                 return None
             break
-    return _prune(fitter, terms, theta, cov, r_tr, r_he, bic, log)
+    return _prune(fitter, terms, theta, cov, r_tr, r_he, bic, log, names)
 
 
 def diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float = HOLDOUT,
@@ -400,16 +417,17 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
     fitter.first_prior = {"link_inertia": link_scale, "payload": np.concatenate(
         [np.full(4, np.inf), np.full(6, LINK_PRIOR["inertia"] * flange_moment)])}
     fitter.links = [robot.model.inertias[i].toDynamicParameters() for i in range(1, n)]
-    log(f"[diagnose] held-out gap per joint before: {np.round(gap_before, 4).tolist()} N·m")
+    log(f"[diagnose] held-out gap per joint before (N·m): {_per_joint(gap_before, robot.joint_names)}")
+    log(f"[diagnose] fitting each of {len(effects)} effects alone (shared by the {STARTS} starts) ...")
     best = None
     first_round = _scored_candidates(fitter, [], held.gap, effects, n)    # shared by every start
     for start in range(STARTS):
-        found = _greedy(fitter, effects, n, start, first_round, lambda line, k=start + 1: log(
-            line.replace("[diagnose]", f"[diagnose] start {k}:")))
+        found = _greedy(fitter, effects, robot.joint_names, start, first_round, lambda line, k=start + 1: log(
+            line.replace("[diagnose]", f"[diagnose] start {k}/{STARTS}:")))
         if found is None:
             break
         score = float(np.sqrt(np.mean(np.square(found[4] * fitter.w))))
-        log(f"[diagnose] start {start + 1}: {[t.name for t in found[0]]}, BIC {found[-1]:.0f}, "
+        log(f"[diagnose] start {start + 1}/{STARTS}: {[t.name for t in found[0]]}, BIC {found[-1]:.0f}, "
             f"weighted held-out gap {score:.4f}")
         if best is None or (found[-1] < best[-1] and len(found[0]) <= len(best[0])):
             best = found
@@ -453,13 +471,13 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         "holdout": holdout, "samples": {"train": len(train), "held_out": len(held)},
         "seconds": round(time.perf_counter() - started, 1),
     }
-    log(f"[diagnose] held-out gap per joint after: {np.round(gap_after, 4).tolist()} N·m "
+    log(f"[diagnose] held-out gap per joint after (N·m): {_per_joint(gap_after, robot.joint_names)} "
         f"(mean {gap_before.mean():.4f} → {gap_after.mean():.4f}); on raw τ_m with q̈ from a "
         f"{RAW_QDD_WINDOW * 1e3:.0f} ms filter {result['gap_raw']['before_mean']:.4f} → "
         f"{result['gap_raw']['after_mean']:.4f}")
     for warning in result["warnings"]:
         log(f"[diagnose] warning: {warning}")
-    return Diagnosis(result, terms, thetas, held, r_he)
+    return Diagnosis(result, terms, thetas, held, r_he, DECIMATE_DT)
 
 
 def train_on_diagnosis(config: EstimatorConfig, robot: RobotModel, segments: Sequence[EstimatorInputs], out: Path,
@@ -542,7 +560,7 @@ def run(args: argparse.Namespace) -> int:
               flush=True)
     robot = RobotModel.from_config(config, base)
     print(f"[diagnose] URDF {config.urdf}", flush=True)
-    segments = load_recordings(args.bags, config.joint_names, config.input.command_max_age, "diagnose")
+    segments = load_recordings(args.bags, config, "diagnose")
     log = lambda line: print(line, flush=True)   # noqa: E731
     if args.max_gain_error <= 0 or args.max_joint_offset <= 0:
         raise ConfigError("--max-gain-error and --max-joint-offset must be positive")

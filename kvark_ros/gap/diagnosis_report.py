@@ -1,6 +1,6 @@
 """``kvark diagnose``'s outputs: ``diagnosis.json``, ``augmentation.yaml``, ``report.md`` (gap tables on filtered
-and raw signals, priors, warnings, look-alikes, the effects with their parameters) and the plots (gap per joint,
-residual against velocity and position)."""
+and raw signals, priors, warnings, look-alikes, the effects with their parameters) and the plots
+(``gap.diagnosis_plots``)."""
 from __future__ import annotations
 
 import json
@@ -19,13 +19,14 @@ from kvark_ros.gap.effects import Signals, Term
 @dataclass
 class Diagnosis:
     """Result of ``diagnose``: the JSON document, the accepted terms and their raw θ, and the
-    held-out signals with the gap before/after (for plots)."""
+    held-out signals with the gap before/after (for plots), ``sample_interval`` s apart (None: unknown)."""
 
     result: dict
     terms: list[Term]
     theta: list[np.ndarray]
     held: Signals
     held_after: np.ndarray
+    sample_interval: float | None = None
 
 
 def report(diag: Diagnosis, robot: RobotModel) -> str:
@@ -68,48 +69,12 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
         lines.append(f"  - parameters: `{json.dumps(eff['parameters'])}`")
         lines.append(f"  - 95 % half-widths (least-squares covariance; samples are correlated, so "
                      f"optimistic): `{json.dumps(eff['ci95'])}`")
-    lines += ["", "Plots: `gap_per_joint.png`, `residual_vs_velocity.png`, `residual_vs_position.png`.", ""]
+    lines += ["", "Plots, on the held-out samples: `gap_per_joint.png` (gap RMSE per joint before and after), "
+              "`gap_over_time.png` (the gap τ_m − τ_EL over time per joint, before and after), "
+              + ("`effect_contributions.png` (each effect's torque, RMS per joint, beside the gap), "
+                 if r["effects"] else "")
+              + "`residual_vs_velocity.png` and `residual_vs_position.png` (the gap against q̇ and q).", ""]
     return "\n".join(lines)
-
-
-def plot(diag: Diagnosis, robot: RobotModel, out: Path) -> list[Path]:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    r, n = diag.result, robot.n
-    paths = []
-    fig, ax = plt.subplots(figsize=(1.2 * n + 3, 3.5))
-    x = np.arange(n)
-    ax.bar(x - 0.2, r["gap_before"]["joint_rmse"], 0.4, label="before")
-    ax.bar(x + 0.2, r["gap_after"]["joint_rmse"], 0.4, label="after")
-    ax.set_xticks(x, [str(j + 1) for j in x])
-    ax.set_xlabel("joint")
-    ax.set_ylabel("held-out gap RMSE (N·m)")
-    ax.legend()
-    fig.tight_layout()
-    paths.append(out / "gap_per_joint.png")
-    fig.savefig(paths[-1], dpi=90)
-    plt.close(fig)
-    for key, label, values in (("velocity", "q̇ (rad/s)", diag.held.qd), ("position", "q (rad)", diag.held.q)):
-        cols = 4 if n > 6 else 3
-        rows = int(np.ceil(n / cols))
-        fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3 * rows), squeeze=False)
-        for j, axj in enumerate(axes.flat):
-            if j >= n:
-                axj.set_visible(False)
-                continue
-            axj.scatter(values[:, j], diag.held.gap[:, j], s=2, alpha=0.4, label="before")
-            axj.scatter(values[:, j], diag.held_after[:, j], s=2, alpha=0.4, label="after")
-            axj.set_title(robot.joint_names[j], fontsize=9)
-            axj.set_xlabel(label)
-            axj.set_ylabel("gap (N·m)")
-        axes.flat[0].legend(markerscale=4)
-        fig.tight_layout()
-        paths.append(out / f"residual_vs_{key}.png")
-        fig.savefig(paths[-1], dpi=80)
-        plt.close(fig)
-    return paths
 
 
 def augmentation(diag: Diagnosis, robot: RobotModel, robot_name: str = "") -> dict:
@@ -139,7 +104,8 @@ def write_outputs(diag: Diagnosis, robot: RobotModel, out: Path, robot_name: str
     write_text_atomically(paths[1], yaml.safe_dump(augmentation(diag, robot, robot_name), sort_keys=False))
     write_text_atomically(paths[2], report(diag, robot))
     if plots:
-        paths.extend(plot(diag, robot, out))
+        from kvark_ros.gap.diagnosis_plots import plot_diagnosis   # matplotlib only when plotting
+        paths.extend(plot_diagnosis(diag, robot, out))
     for path in paths:
         log(f"[diagnose] wrote {path}")
     return paths

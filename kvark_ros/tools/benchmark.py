@@ -21,8 +21,8 @@ from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.model_store import save_model
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.core.training import train_model
-from kvark_ros.io import read_run, write_run
-from kvark_ros.io.alignment import estimator_inputs
+from kvark_ros.io import write_run
+from kvark_ros.io.alignment import read_inputs
 from kvark_ros.tools.replay import replay
 from kvark_ros.tools.report import metrics_table
 
@@ -58,12 +58,13 @@ def simulate_bags(robot: str, plan: BenchmarkPlan, folder: Path, seed: int, log,
     jobs = [(f"train_excitation_{s}", "excitation", s + seed, plan.train_duration) for s in plan.train_seeds]
     jobs += [(f"test_{name}", name, seed + 100 + i, plan.test_duration) for i, name in enumerate(TEST_SCENARIOS)]
     paths: dict[str, Path] = {}
-    for label, scenario, scenario_seed, duration in jobs:
+    for step, (label, scenario, scenario_seed, duration) in enumerate(jobs, start=1):
         path = folder / label
         if not path.exists():
             started = time.perf_counter()
             write_run(path, simulate(robot, scenario, scenario_seed, duration, plant))
-            log(f"[benchmark] simulated {label} ({duration:g} s) in {time.perf_counter() - started:.1f} s")
+            log(f"[benchmark] simulated {step}/{len(jobs)} {label} ({duration:g} s) in "
+                f"{time.perf_counter() - started:.1f} s")
         paths[label] = path
     train = [paths[label] for label, scenario, *_ in jobs if scenario == "excitation"]
     tests = {scenario: paths[f"test_{scenario}"] for scenario in TEST_SCENARIOS}
@@ -198,15 +199,15 @@ def run(args: argparse.Namespace) -> int:
     oracle = OracleResidual(spec, config.n_joints, urdf=true_urdf(robot_setup(args.robot), spec))
     train_bags, test_bags = simulate_bags(args.robot, plan, out / "bags", args.seed, log, plant_path)
     robot = RobotModel.from_config(config)
-    segments = [estimator_inputs(read_run(bag, config.joint_names), config.input.command_max_age, path=str(bag))
-                for bag in train_bags]
+    segments = [read_inputs(bag, config)[1] for bag in train_bags]
+    log(f"[benchmark] training on {len(train_bags)} bags (nominal model)")
     trained = train_model(robot, config.robot, segments, seed=args.seed, log=log,
                           info={"bags": [bag.name for bag in train_bags]})
     save_model(out / "model", trained)
     observers = parse_observers(args.observers, with_oracle=True)
     results: dict[str, Any] = {"scenarios": {}}
-    for scenario, bag in test_bags.items():
-        log(f"[benchmark] replaying {scenario}")
+    for step, (scenario, bag) in enumerate(test_bags.items(), start=1):
+        log(f"[benchmark] replay {step}/{len(test_bags)}: {scenario} × {len(observers)} observers")
         results["scenarios"][scenario] = replay(config, trained, bag, out / scenario, observers, oracle=oracle,
                                                 write_bag=False, log=log)
     if args.augment:
@@ -226,10 +227,12 @@ def augmented_run(config: EstimatorConfig, nominal: RobotModel, segments: list, 
     """Diagnose the training recordings on the ``nominal`` model, train on the augmented model, replay
     the test bags with it."""
     from kvark_ros.gap.diagnose import train_on_diagnosis
+    log("[benchmark] diagnosing the training bags, training on the augmented model")
     trained, summary = train_on_diagnosis(config, nominal, segments, out, baselines=False, seed=seed, log=log)
     scenarios = {}
-    for scenario, bag in test_bags.items():
-        log(f"[benchmark] replaying {scenario} on the augmented model")
+    for step, (scenario, bag) in enumerate(test_bags.items(), start=1):
+        log(f"[benchmark] augmented replay {step}/{len(test_bags)}: {scenario} × {len(AUGMENTED_OBSERVERS)} "
+            "observers")
         scenarios[scenario] = replay(config, trained, bag, out / "augmented" / scenario, list(AUGMENTED_OBSERVERS),
                                      write_bag=False, log=log)
     return {**summary, "scenarios": scenarios}

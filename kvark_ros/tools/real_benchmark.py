@@ -29,8 +29,8 @@ from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.model_store import save_model
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.core.training import train_model
-from kvark_ros.io import BagError, read_run
-from kvark_ros.io.alignment import estimator_inputs
+from kvark_ros.io import BagError
+from kvark_ros.io.alignment import read_inputs
 from kvark_ros.tools.metrics import observer_metrics
 from kvark_ros.tools.replay import run_observer, zero_truth
 
@@ -59,10 +59,11 @@ def evaluate(config: EstimatorConfig, trained: Any, held: EstimatorInputs, obser
     """metrics.json-style entries of every observer on the held-out part, against a zero truth."""
     truth = zero_truth(held, "contact-free recording")
     results = {}
-    for name in observers:
+    for step, name in enumerate(observers, start=1):
         result = run_observer(config, trained, held, name)
         results[name] = observer_metrics(result, truth, held.stamp)
-        log(f"[benchmark] {name:<11} false τ_ext {results[name]['joint_rmse_mean']:.3f} N·m")
+        log(f"[benchmark] {step}/{len(observers)} {name:<11} false τ_ext "
+            f"{results[name]['joint_rmse_mean']:.3f} N·m")
     return results
 
 
@@ -73,7 +74,8 @@ def report(results: dict[str, Any]) -> str:
              f"{results['samples']['held_out']} held out at about {results['rate_hz']:.0f} Hz; τ_m from "
              f"{results['torque_source']}; true external torque zero (contact-free recording)",
              f"- augmentation named by kvark diagnose: {', '.join(results['augmentation']['effects']) or 'none'} "
-             f"(held-out gap {results['augmentation']['gap_before']:.3f} → {results['augmentation']['gap_after']:.3f} N·m)",
+             f"(held-out gap {results['augmentation']['gap_before']:.3f} → "
+             f"{results['augmentation']['gap_after']:.3f} N·m)",
              "", "| observer | false τ_ext RMSE (N·m) nominal / augmented | false force RMSE (N) | "
              "coverage95 of 0 | false contact share |", "|---|---|---|---|---|"]
     nominal, augmented = results["nominal"], results["augmented"]
@@ -104,8 +106,7 @@ def run_real(args: argparse.Namespace) -> int:
     if not 0.1 <= args.train_share <= 0.9:
         raise ConfigError(f"--train-share {args.train_share} is outside [0.1, 0.9]; the held-out part must be "
                           "long enough to judge and the training part to learn from")
-    inputs = estimator_inputs(read_run(args.real, config.joint_names), config.input.command_max_age,
-                              path=str(args.real))
+    inputs = read_inputs(args.real, config)[1]
     train, held = split(inputs, args.train_share, args.rate)
     if len(train) < 500 or len(held) < 100:
         raise BagError(f"{args.real}: {len(train)} training and {len(held)} held-out samples; record at least "
@@ -115,16 +116,20 @@ def run_real(args: argparse.Namespace) -> int:
     log(f"[benchmark] {args.real}: {len(train)} training and {len(held)} held-out samples (τ_m from "
         f"{inputs.torque_source})")
     robot = RobotModel.from_config(config)
+    log("[benchmark] step 1/4: training on the nominal model")
     nominal = train_model(robot, config.robot, [train], baselines=not args.no_baselines, log=log)
     save_model(out / "model", nominal)
+    log(f"[benchmark] step 2/4: {len(observers)} observers on the held-out part, nominal model")
     results: dict[str, Any] = {
         "bag": str(args.real), "train_share": args.train_share, "torque_source": inputs.torque_source,
         "rate_hz": round(1.0 / float(np.median(np.diff(held.stamp))), 1),
         "samples": {"train": len(train), "held_out": len(held)},
         "nominal": evaluate(config, nominal, held, observers, log)}
     from kvark_ros.gap.diagnose import train_on_diagnosis
+    log("[benchmark] step 3/4: diagnosis of the training part, training on the augmented model")
     augmented, results["augmentation"] = train_on_diagnosis(config, robot, [train], out,
                                                             baselines=not args.no_baselines, log=log)
+    log(f"[benchmark] step 4/4: {len(observers)} observers on the held-out part, augmented model")
     results["augmented"] = evaluate(config, augmented, held, observers, log)
     write_text_atomically(out / "results.json", json.dumps(results, indent=2))
     write_text_atomically(out / "report.md", report(results))

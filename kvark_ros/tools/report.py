@@ -7,10 +7,17 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from kvark_ros.core.files import write_text_atomically
-from kvark_ros.tools.plots import plot_error_bars, plot_time_histories
+from kvark_ros.tools.plots import (
+    INSET_HALF_WIDTH,
+    MAX_INSETS,
+    contact_onsets,
+    plot_error_bars,
+    plot_errors,
+    plot_time_histories,
+)
 
 PLOTTED_OBSERVERS = ("kvark", "kf", "momentum", "oracle")   # time histories stay readable with a few lines
-AXES = ("Fx", "Fy", "Fz", "Mx", "My", "Mz")
+AXES = ("Fx (N)", "Fy (N)", "Fz (N)", "Mx (N·m)", "My (N·m)", "Mz (N·m)")
 
 
 def _cell(value: Any, digits: int = 3) -> str:
@@ -46,20 +53,38 @@ def contact_table(observers: Mapping[str, Mapping[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def best_observer(observers: Mapping[str, Mapping[str, Any]]) -> str | None:
+    """The observer with the lowest mean joint RMSE, the oracle aside (it runs on the plant's own model); None
+    without ground truth."""
+    scored = {name: entry["joint_rmse_mean"] for name, entry in observers.items()
+              if name != "oracle" and entry.get("joint_rmse_mean") is not None}
+    return min(scored, key=scored.get) if scored else None
+
+
 def write_replay_report(out: Path, metrics: Mapping[str, Any], robot: Any, inputs: Any, truth: Any,
                         results: Sequence[Any]) -> list[Path]:
-    """report.md and figures for one replay."""
-    plotted = {r.name: r for r in results if r.name in PLOTTED_OBSERVERS} or {results[0].name: results[0]}
+    """report.md and figures for one replay: τ_ext and wrench time histories, and with ground truth the τ_ext
+    error over time and the RMSE bars; insets zoom on the first contact onsets of the truth."""
+    best = best_observer(metrics["observers"])
+    plotted = ({r.name: r for r in results if r.name in PLOTTED_OBSERVERS or r.name == best}
+               or {results[0].name: results[0]})
+    tau = {n: np.where(r.valid[:, None], r.tau_ext, np.nan) for n, r in plotted.items()}
+    onsets = contact_onsets(inputs.stamp, truth.tau_ext) if truth is not None else np.zeros(0)
+    names = robot.joint_names
     figures = [
-        plot_time_histories(inputs.stamp, None if truth is None else truth.tau_ext,
-                            {n: np.where(r.valid[:, None], r.tau_ext, np.nan) for n, r in plotted.items()},
-                            robot.joint_names, "τ_ext (N·m)", out / "joint_torques.png",
-                            {n: r.tau_std for n, r in plotted.items() if r.tau_std is not None}),
+        plot_time_histories(inputs.stamp, None if truth is None else truth.tau_ext, tau, names, "τ_ext (N·m)",
+                            out / "joint_torques.png", stddev={n: r.tau_std for n, r in plotted.items()
+                                                               if r.tau_std is not None},
+                            best=best, onsets=onsets, title="External joint torque"),
         plot_time_histories(inputs.stamp, None if truth is None or truth.wrench is None else truth.wrench,
                             {n: np.where(r.valid[:, None], r.wrench, np.nan) for n, r in plotted.items()},
-                            AXES, "wrench (N, N·m)", out / "wrench.png"),
+                            AXES, "external wrench", out / "wrench.png", best=best, onsets=onsets,
+                            title="External wrench"),
     ]
     if truth is not None:
+        figures.append(plot_errors(inputs.stamp, truth.tau_ext, tau, names, "estimate − truth (N·m)",
+                                   out / "joint_errors.png", best=best, onsets=onsets,
+                                   title="Error of the external joint torque"))
         figures.append(plot_error_bars(metrics["observers"], "joint_rmse_mean", "joint RMSE (N·m)",
                                        out / "joint_rmse.png"))
     text = [f"# Replay of `{metrics['bag']}`", "",
@@ -72,6 +97,18 @@ def write_replay_report(out: Path, metrics: Mapping[str, Any], robot: Any, input
     if contact:
         text += ["Contact flag (true contact: |τ_ext| > 0.5 N·m on a joint; contact-free: none, and 0.2 s after "
                  "the last):", "", contact, ""]
+    text += [figure_notes(list(plotted), best, truth is not None, len(onsets)), ""]
     text += [f"![{path.stem}]({path.name})" for path in figures]
     write_text_atomically(out / "report.md", "\n".join(text) + "\n")
     return figures
+
+
+def figure_notes(plotted: Sequence[str], best: str | None, has_truth: bool, onsets: int) -> str:
+    """What the figures show, for the report."""
+    notes = (f"Figures: {', '.join(plotted)}; K-VARK thick (blue), "
+             + (f"the observer with the lowest RMSE ({best}, red) above the others, " if best else "")
+             + "the others thin underneath; 95 % bands of the highlighted ones where they report one.")
+    if not has_truth:
+        return notes + " No ground truth: no error figure, no RMSE bars, no contact-onset insets."
+    return (notes + " The ground truth is black, drawn on top. `joint_errors.png`: the estimate minus the truth "
+            f"over time. {onsets} contact onset(s) zoomed in insets (±{INSET_HALF_WIDTH} s, at most {MAX_INSETS}).")

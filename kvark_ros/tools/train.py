@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     if augmentation is not None:
         print(f"[train] model augmented by {source}: {', '.join(augmentation.effect_names) or 'no effects'}",
               flush=True)
-    segments = load_recordings(args.bags, config.joint_names, config.input.command_max_age, "train")
+    segments = load_recordings(args.bags, config, "train")
     info = {"robot": config.robot, "joint_names": list(config.joint_names),
             "urdf_sha256": urdf_sha256(config.urdf),
             "augmentation": None if augmentation is None else {

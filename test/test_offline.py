@@ -437,7 +437,8 @@ def test_metrics_of_hand_made_errors():
     wrench_hat[4, 1] = 6.0                   # force y error 6 on row 4
     wrench_hat[0] = 50.0                     # invalid row
     valid = np.array([False, True, True, True, True, True])
-    result = ObserverRun("x", tau_hat, tau_std, wrench_hat, None, valid, 12.345, {}, np.zeros(6, dtype=bool))
+    result = ObserverRun("x", tau_hat, tau_std, wrench_hat, None, valid, 12.345, {}, np.zeros(6, dtype=bool),
+                         np.zeros(6, dtype=bool))
     stamp = 0.002 * np.arange(6)
     entry = observer_metrics(result, GroundTruth("hand", tau_true, wrench_true), stamp)
 

@@ -14,13 +14,18 @@ def _rounded(values: np.ndarray | float) -> Any:
 
 def observer_metrics(result: Any, truth: Any, stamp: np.ndarray) -> dict[str, Any]:
     """metrics.json's per-observer entry: joint/force/moment RMSE, |error| statistics, coverage95, µs/step,
-    and the contact flag's figures (:func:`contact_metrics`, under ``contact``).
+    and the contact and collision flags' figures (:func:`contact_metrics`, under ``contact`` and ``collision``);
+    ``collision_share`` (share of estimates flagged) and a ``--tare-at`` tare's outcome also without truth.
 
     Only samples where the observer gave an estimate and the truth is finite count. coverage95 is the
     share of joint samples whose true τ_ext lies within the reported ±1.96 σ (None without a covariance).
     """
     entry: dict[str, Any] = {"us_per_step": round(result.us_per_step, 2),
-                             "estimates": int(result.valid.sum()), "rejected": result.rejected}
+                             "estimates": int(result.valid.sum()), "rejected": result.rejected,
+                             "collision_share": _rounded(result.collision[result.valid].mean())
+                             if result.valid.any() else None}
+    if result.tare is not None:
+        entry["tare"] = result.tare
     if truth is None:
         return entry
     rows = result.valid & np.isfinite(truth.tau_ext).all(axis=1)
@@ -33,6 +38,7 @@ def observer_metrics(result: Any, truth: Any, stamp: np.ndarray) -> dict[str, An
         "max": _rounded(magnitude.max()), "temporal_std": _rounded(error.std(axis=0).mean()),
         "coverage95": None,
         "contact": contact_metrics(stamp, result.contact, result.valid, truth.tau_ext),
+        "collision": contact_metrics(stamp, result.collision, result.valid, truth.tau_ext),
     })
     if result.tau_std is not None:
         inside = magnitude <= 1.96 * result.tau_std[rows]

@@ -24,12 +24,15 @@ import numpy as np
 from kvark_ros.core.config import OBSERVER_NAMES, ConfigError, EstimatorConfig, load_config, parse_observers
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.files import write_text_atomically
+from kvark_ros.core.tare import TareError
 from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.model_store import TrainedModel, load_model
+from kvark_ros.core.model_checks import measured_rate, model_warnings
 from kvark_ros.core.observers import ResidualPredictor, make_observer
 from kvark_ros.core.robot_model import RobotModel, urdf_sha256
-from kvark_ros.io import BagError, BagWriter, RecordedRun, read_run, write_run_messages
-from kvark_ros.io.alignment import estimator_inputs
+from kvark_ros.io import BagError, BagWriter, RecordedRun, write_run_messages
+from kvark_ros.io.alignment import read_inputs
+from kvark_ros.tools.reference import align_reference
 from kvark_ros.tools.metrics import observer_metrics
 
 OUTPUT_PREFIX = "/kvark"
@@ -47,7 +50,8 @@ class GroundTruth:
 @dataclass(frozen=True)
 class ObserverRun:
     """One observer's outputs along the inputs; rows where ``valid`` is False had no estimate.
-    ``contact``: the Estimator's debounced contact flag (T,) bool."""
+    ``contact``, ``collision``: the Estimator's debounced contact flag and its collision flag (T,) bool;
+    ``tare``: what a ``--tare-at`` tare did (state, offset per joint N·m, note), or None."""
 
     name: str
     tau_ext: np.ndarray
@@ -58,6 +62,8 @@ class ObserverRun:
     us_per_step: float
     rejected: dict[str, int]
     contact: np.ndarray
+    collision: np.ndarray
+    tare: dict | None = None
 
 
 def _align(stamp: np.ndarray, source_stamp: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -92,7 +98,7 @@ def _take(inputs: EstimatorInputs, truth: GroundTruth | None,
           rows: np.ndarray) -> tuple[EstimatorInputs, GroundTruth | None]:
     """The inputs and the ground truth at ``rows``."""
     kept = EstimatorInputs(inputs.stamp[rows], inputs.q[rows], inputs.qd[rows], inputs.tau_m[rows],
-                           inputs.torque_source, inputs.dropped)
+                           inputs.torque_source, inputs.dropped, inputs.simulated)
     if truth is None:
         return kept, None
     return kept, GroundTruth(truth.kind, truth.tau_ext[rows], None if truth.wrench is None else truth.wrench[rows])
@@ -127,11 +133,13 @@ def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, i
                         else np.full(robot.n, np.nan) for q, w in zip(inputs.q, at_sensor)])
         return GroundTruth(f"wrist F/T through J^T w (v2 eq. 37, frame {run.wrench.frame_id})", tau, wrench)
     if reference is not None and kind in ("auto", "reference"):
+        alignment = align_reference(inputs, reference, config.joint_names)
         elapsed = inputs.stamp - inputs.stamp[0]
-        free = _align(elapsed, reference.stamp - reference.stamp[0], reference.tau_m)
+        free = _align(elapsed + alignment.shift, reference.stamp - reference.stamp[0], reference.tau_m)
         tau = free - inputs.tau_m
-        return GroundTruth("two-run difference against the reference bag (v2 eq. 40)", tau,
-                           _wrench_of_torque(robot, config, inputs.q, tau))
+        return GroundTruth(f"two-run difference against the reference bag (v2 eq. 40), aligned by cross-correlating "
+                           f"q: shift {alignment.shift:+.3f} s, q RMS difference ≤ {alignment.q_rms.max():.4f} rad",
+                           tau, _wrench_of_torque(robot, config, inputs.q, tau))
     return None
 
 
@@ -142,9 +150,14 @@ def _wrench_of_torque(robot: RobotModel, config: EstimatorConfig, q: np.ndarray,
 
 
 def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: EstimatorInputs, name: str,
-                 oracle: ResidualPredictor | None = None) -> ObserverRun:
-    """Step a fresh Estimator with observer ``name`` over every input sample (``oracle``: for the oracle)."""
+                 oracle: ResidualPredictor | None = None, tare_at: float | None = None) -> ObserverRun:
+    """Step a fresh Estimator with observer ``name`` over every input sample (``oracle``: for the oracle).
+
+    ``tare_at``: s after the first sample from which a tare is started (``Estimator.start_tare``, as the node's
+    ``~/tare``) at the first sample the arm is at rest; its outcome is in ``ObserverRun.tare``."""
     estimator = Estimator.from_config(config, trained, observer=name, oracle=oracle)
+    tare_stamp = None if tare_at is None else inputs.stamp[0] + tare_at
+    tare_started = False
     count, n = len(inputs), estimator.robot.n
     tau = np.zeros((count, n))
     wrench = np.zeros((count, 6))
@@ -152,12 +165,19 @@ def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: Estimat
     wrench_var = np.full((count, 6), np.nan)
     valid = np.zeros(count, dtype=bool)
     contact = np.zeros(count, dtype=bool)
+    collision = np.zeros(count, dtype=bool)
     started = time.perf_counter()
     for k in range(count):
+        if tare_stamp is not None and not tare_started and inputs.stamp[k] >= tare_stamp:
+            try:
+                estimator.start_tare()
+                tare_started = True
+            except TareError:          # moving (or warming up): the node's ~/tare refuses too; try the next sample
+                pass
         estimate = estimator.step(inputs.stamp[k], inputs.q[k], inputs.qd[k], inputs.tau_m[k])
         if estimate is None:
             continue
-        valid[k], contact[k] = True, estimate.contact
+        valid[k], contact[k], collision[k] = True, estimate.contact, estimate.collision
         tau[k], wrench[k] = estimate.tau_ext, estimate.wrench
         if estimate.tau_cov is not None:
             tau_var[k] = np.diag(estimate.tau_cov)
@@ -165,9 +185,13 @@ def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: Estimat
     elapsed = time.perf_counter() - started
     reports = estimator.observer.reports_covariance
     rejected = {status: number for status, number in estimator.counts.items() if status != "ok"}
+    tare = None
+    if tare_stamp is not None:
+        tare = {"state": estimator.tare.state if tare_started else "never at rest after --tare-at",
+                "offset": [round(float(v), 6) for v in estimator.tare.offset], "note": estimator.tare.note}
     return ObserverRun(name, tau, np.sqrt(tau_var) if reports else None, wrench,
                        np.sqrt(wrench_var) if reports else None, valid, 1e6 * elapsed / max(count, 1), rejected,
-                       contact)
+                       contact, collision, tare)
 
 
 def write_estimates(path: Path, run: RecordedRun, inputs: EstimatorInputs, results: Sequence[ObserverRun],
@@ -186,12 +210,13 @@ def write_estimates(path: Path, run: RecordedRun, inputs: EstimatorInputs, resul
                 if result.tau_std is not None:
                     bag.float64_array(f"{prefix}/external_joint_torque_stddev", stamp, result.tau_std[k], names=names)
                 bag.boolean(f"{prefix}/contact", stamp, bool(result.contact[k]))
+                bag.boolean(f"{prefix}/collision", stamp, bool(result.collision[k]))
 
 
 def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path, observers: Sequence[str],
            reference_bag: Path | None = None, oracle: ResidualPredictor | None = None, write_bag: bool = True,
            plots: bool = True, log=print, truth_kind: str = "auto",
-           trim: tuple[float, float] = (0.0, 0.0)) -> dict:
+           trim: tuple[float, float] = (0.0, 0.0), tare_at: float | None = None) -> dict:
     """Replay ``bag`` through ``observers``; write outputs under ``out``; return metrics.json's content.
 
     ``oracle``: the simulator's true residual (``kvark_ros.sim.plant.OracleResidual``), for the oracle;
@@ -200,30 +225,36 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
     for name in observers:           # fail on a model or oracle that cannot serve an observer before decoding
         make_observer(name, trained, config.filter, oracle)
     started = time.perf_counter()
-    run = read_run(bag, config.joint_names)
-    inputs = estimator_inputs(run, config.input.command_max_age, path=str(bag))
+    run, inputs = read_inputs(bag, config)
     if len(inputs) < 2:
         raise BagError(f"{bag}: fewer than two usable samples; check that joint_states and effort_commands overlap")
+    log(f"[replay] {bag}: {len(inputs)} samples at {measured_rate(inputs.stamp):.0f} Hz, τ_m from "
+        f"{inputs.torque_source}{' (simulated)' if inputs.simulated else ''}")
+    warnings = model_warnings(trained, config.robot, measured_rate(inputs.stamp), inputs.simulated)
+    for line in warnings:
+        log(f"[replay] {line}")
     reference = None
     if reference_bag is not None:
-        reference = estimator_inputs(read_run(reference_bag, config.joint_names), config.input.command_max_age,
-                                     path=str(reference_bag))
+        reference = read_inputs(reference_bag, config)[1]
     robot = RobotModel.from_config(config, trained.augmentation)
     truth = ground_truth(robot, config, run, inputs, reference, truth_kind)
     if trim != (0.0, 0.0):     # after the ground truth: a reference run is aligned from the recordings' starts
         inputs, truth = _take(inputs, truth, trimmed_rows(inputs.stamp, *trim))
     decode_seconds = time.perf_counter() - started
     results = []
-    for name in observers:
-        result = run_observer(config, trained, inputs, name, oracle)
+    for step, name in enumerate(observers, start=1):
+        result = run_observer(config, trained, inputs, name, oracle, tare_at)
         results.append(result)
-        log(f"[replay] {name:<12} {result.us_per_step:7.1f} µs/step, {result.valid.sum()} estimates")
+        log(f"[replay] {step}/{len(observers)} {name:<12} {result.us_per_step:7.1f} µs/step, "
+            f"{result.valid.sum()} estimates")
     duration = float(inputs.stamp[-1] - inputs.stamp[0])
     metrics = {
         "bag": str(bag),
         "ground_truth": truth.kind if truth is not None else "none", "trim_s": [float(v) for v in trim],
         "samples": len(inputs), "duration_s": round(duration, 3), "torque_source": inputs.torque_source,
         "dropped_samples": inputs.dropped, "decode_seconds": round(decode_seconds, 3),
+        "sample_rate_hz": round(measured_rate(inputs.stamp), 3), "model_sample_rate_hz": round(trained.sample_rate, 3),
+        "warnings": warnings,
         "observers": {r.name: observer_metrics(r, truth, inputs.stamp) for r in results},
     }
     out.mkdir(parents=True, exist_ok=True)
@@ -257,6 +288,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "error), or one of topic, ft, reference (an error if the data lack it)")
     parser.add_argument("--trim", nargs=2, type=float, default=(0.0, 0.0), metavar=("START", "END"),
                         help="drop the first START and the last END seconds of the bag (a start-up, a stop)")
+    parser.add_argument("--tare-at", type=float, metavar="SECONDS",
+                        help="start a tare (the node's ~/tare: average τ_ext over tare.duration s at rest, then "
+                             "subtract it) at the first sample at rest from SECONDS after the bag's start")
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--no-bag", action="store_true", help="skip writing the estimates bag")
     parser.set_defaults(run=run)
@@ -285,6 +319,7 @@ def run(args: argparse.Namespace) -> int:
               "model is augmented", flush=True)
     replay(config, trained, Path(args.bag), Path(args.out), observers,
            Path(args.reference_bag) if args.reference_bag else None, oracle, write_bag=not args.no_bag,
-           log=lambda line: print(line, flush=True), truth_kind=args.ground_truth, trim=tuple(args.trim))
+           log=lambda line: print(line, flush=True), truth_kind=args.ground_truth, trim=tuple(args.trim),
+           tare_at=args.tare_at)
     print(f"[replay] wrote {args.out}/metrics.json and report.md", flush=True)
     return 0

@@ -460,7 +460,8 @@ def test_metrics_of_hand_made_errors():
     no_cov = observer_metrics(replace(result, tau_std=None), GroundTruth("hand", tau_true, wrench_true), stamp)
     assert no_cov["coverage95"] is None and no_cov["joint_rmse"] == entry["joint_rmse"]
     bare = observer_metrics(result, None, stamp)
-    assert set(bare) == {"us_per_step", "estimates", "rejected"}
+    assert set(bare) == {"us_per_step", "estimates", "rejected", "collision_share", "wrench"}
+    assert bare["collision_share"] == 0.0
 
 
 # --------------------------------------------------------------------------- 6. every observer, known answer

@@ -136,6 +136,11 @@ KEYS: tuple[Key, ...] = (
     _key("wrench.frame", "choice", "base", "axes of the published wrench: base or end_effector (ee_frame)", runtime=True, choices=WRENCH_FRAMES),
     _key("wrench.damping", "number", 0.05, "damping δ of the pseudo-inverse (paper v2 eq. 39)", runtime=True,
          **_unit(0.0, 10.0)),
+    _key("wrench.prior_force", "number", 50.0, "N; scale of an unknown force: the wrench covariance carries its "
+         "damping bias along directions the joints cannot sense (docs/method.md §1.4.1)", runtime=True,
+         **_unit(0.0, 1e4)),
+    _key("wrench.prior_moment", "number", 5.0, "N·m; the same for an unknown moment", runtime=True,
+         **_unit(0.0, 1e4)),
     _key("filter.initial_covariance", "number", 1.0, "P₀ (τ block) = value · I, N²·m²", **_unit(0.0, 1e6, low_open=True)),
     _key("filter.vb_iterations", "integer", 1, "VB iterations M per sample", **_unit(1, 50)),
     _key("filter.vb_memory", "number", 0.2,
@@ -152,6 +157,9 @@ KEYS: tuple[Key, ...] = (
     _key("filter.onset_window_time", "number", 0.02,
          "s back the contact onset may lie (time / t_s hypotheses, at least 2)", **_unit(0.001, 1.0)),
     _key("filter.measurement", "choice", "momentum", "form of the filter: p measured (momentum) or the paper's eq. 28 (difference)", choices=MEASUREMENTS),
+    _key("filter.stiction_velocity", "number", 0.05,
+         "rad/s; below it a joint counts as sticking: its interval widens to the trained static friction band "
+         "(docs/method.md §4.11; 0 = off)", runtime=True, **_unit(0.0, 10.0)),
     _key("filter.huang_tau", "number", 300.0, "prior strength τ of the huang variant",
          **_unit(0.0, 1e6, low_open=True)),
     _key("filter.ewma_time", "number", 0.2,

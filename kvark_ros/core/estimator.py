@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -20,7 +21,7 @@ from kvark_ros.core.contact import CollisionDetector, ContactDetector, contact_c
 from kvark_ros.core.model_store import TrainedModel, load_model
 from kvark_ros.core.observers import Observer, ResidualPredictor, make_observer
 from kvark_ros.core.payload import Payload, inertia_problem
-from kvark_ros.core.robot_model import RobotModel, urdf_sha256
+from kvark_ros.core.robot_model import RobotModel, condition_number, urdf_sha256
 from kvark_ros.core.tare import Tare
 
 
@@ -33,7 +34,11 @@ class Estimate:
     ``end_effector``); wrench_cov: (6, 6), same axes. The covariances are ``None`` for observers that
     report no uncertainty. contact: the debounced contact flag (docs/method.md §7); collision: the
     undebounced per-joint collision flag (``kvark_ros.core.contact``). ee_rotation: (3, 3) rotation of
-    the ee_frame axes in base axes, R (``v_base = R v_ee``), for ``wrench_in``.
+    the ee_frame axes in base axes, R (``v_base = R v_ee``), for ``wrench_in``. jacobian: (6, n) J in base
+    axes, the one the wrench came from (``jacobian_condition``); weak_directions: (6, k) unit wrench
+    directions (columns, ``wrench_frame`` axes) the joints cannot sense (σ_i < ``wrench.damping``), along
+    which wrench_cov carries the damping bias for the ``wrench.prior_*`` scale (docs/method.md §1.4.1);
+    k = 0 away from singular poses.
     """
 
     stamp: float
@@ -45,6 +50,18 @@ class Estimate:
     collision: bool
     wrench_frame: str
     ee_rotation: np.ndarray
+    jacobian: np.ndarray
+    weak_directions: np.ndarray
+
+    @cached_property
+    def jacobian_condition(self) -> float:
+        """κ = σ_max/σ_min of J (∞ for n < 6), the same in either axes; an SVD when first asked, not per sample."""
+        return condition_number(self.jacobian)
+
+    @property
+    def wrench_observable(self) -> bool:
+        """Whether every wrench direction is sensed by the joints (no σ_i below ``wrench.damping``)."""
+        return self.weak_directions.shape[1] == 0
 
     def wrench_in(self, frame: str) -> np.ndarray:
         """The wrench (6,) in ``base`` or ``end_effector`` axes, same reference point (the ee_frame origin):
@@ -57,8 +74,8 @@ class Estimate:
 
 def rotate_wrench(rotation: np.ndarray, wrench: np.ndarray, cov: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray | None]:
-    """A wrench (6,) and its covariance (6, 6) or None in other axes, same reference point:
-    ``F' = B F``, ``Σ' = B Σ Bᵀ`` with ``B = diag(R, R)`` and ``R`` (3, 3) the rotation to the new axes."""
+    """A wrench (6,) or wrench directions (6, k), and a covariance (6, 6) or None, in other axes, same
+    reference point: ``F' = B F``, ``Σ' = B Σ Bᵀ``, ``B = diag(R, R)``, ``R`` (3, 3) the rotation to the new axes."""
     turned = np.concatenate((rotation @ wrench[:3], rotation @ wrench[3:]))
     if cov is None:
         return turned, None
@@ -130,12 +147,16 @@ class Estimator:
         self.observer = observer
         self.trained = trained
         self._contact_residual = None if observer.uses_residual_model or trained is None else trained.residual
+        # The trained static friction band widens the reported intervals at rest (core.stiction); None: not
+        # identified (a model trained before it was) or filter.stiction_velocity 0.
+        self._stiction = None if trained is None else trained.stiction
         # Pose inputs of the residual model in use (observer's or contact test's): g(q) costs a pinocchio pass.
         self._needs = observer.needs | frozenset(getattr(self._contact_residual, "needs", ()))
         self.contact = ContactDetector(robot.n, config.contact.confidence, config.contact.debounce)
         self.collision = CollisionDetector(config.contact.confidence, config.contact.collision_torque)
         self.tare = Tare(config.joint_names, config.tare.duration, config.tare.max_speed)
         self.counts: Counter[str] = Counter()
+        self.unobservable_samples = 0     # estimates with a wrench direction the joints cannot sense (§1.4.1)
         self.status = Status.WARMUP
         self.reset()
 
@@ -273,13 +294,23 @@ class Estimator:
         g = self.robot.gravity(q) if "g" in self._needs else None
         tau_ext, tau_cov = self.observer.step(stamp - previous, qd, p, p_prev, u_prev, q, g)
         tau_ext = self.tare.apply(stamp, qd, tau_ext)         # τ̂ − offset (a non-finite τ̂ resets below)
+        sticking = self._sticking_variance(qd)
+        if tau_cov is not None and sticking is not None:
+            tau_cov = tau_cov.copy()                           # the observer's own P stays as it is
+            tau_cov.flat[:: n + 1] += sticking                 # Cov τ̂ + diag σ²_s(q̇) (docs/method.md §4.11)
         frame = self.config.wrench.frame
         # One Jacobian per sample, in base axes: that pass also places the ee frame (data.oMf), whose rotation R
         # gives the ee axes, F_ee = diag(Rᵀ, Rᵀ) F_base (the damped pseudo-inverse is rotation-covariant).
-        wrench, wrench_cov = self.robot.wrench_from_torque(q, tau_ext, tau_cov, self.config.wrench.damping, "base")
+        # That J also tells the weak directions (σ_i < δ); Σ_F carries the damping bias along them (§1.4.1).
+        settings = self.config.wrench
+        solution = self.robot.solve_wrench(q, tau_ext, tau_cov, settings.damping, "base",
+                                           (settings.prior_force, settings.prior_moment))
+        wrench, wrench_cov, weak = solution.wrench, solution.cov, solution.weak
         rotation = self.robot.data.oMf[self.robot.ee_frame_id].rotation.copy()
         if frame != "base":
             wrench, wrench_cov = rotate_wrench(rotation.T, wrench, wrench_cov)
+            if weak.shape[1]:
+                weak = rotate_wrench(rotation.T, weak)[0]
         total = tau_ext.sum() + (0.0 if tau_cov is None else tau_cov.sum() + wrench_cov.sum())
         if not np.isfinite(total):
             self.reset()
@@ -287,15 +318,26 @@ class Estimator:
             return None
         self.status = Status.OK
         self.counts[Status.OK] += 1
-        covariance = self._test_covariance(q, qd, g, tau_cov)
+        covariance = self._test_covariance(q, qd, g, tau_cov, sticking)
         contact = self.contact.flag if covariance is None else self.contact.update(stamp, tau_ext, covariance)
         collision = self.collision.update(tau_ext, covariance)
-        return Estimate(stamp, tau_ext, tau_cov, wrench, wrench_cov, contact, collision, frame, rotation)
+        if weak.shape[1]:
+            self.unobservable_samples += 1
+        return Estimate(stamp, tau_ext, tau_cov, wrench, wrench_cov, contact, collision, frame, rotation,
+                        solution.jacobian, weak)
+
+    def _sticking_variance(self, qd: np.ndarray) -> np.ndarray | None:
+        """σ²_s(q̇) (n,) N²·m² of the trained static friction band, or None when off (core.stiction)."""
+        velocity = self.config.filter.stiction_velocity
+        if self._stiction is None or velocity == 0.0:
+            return None
+        return self._stiction.variance(qd, velocity)
 
     def _test_covariance(self, q: np.ndarray, qd: np.ndarray, g: np.ndarray | None,
-                         tau_cov: np.ndarray | None) -> np.ndarray | None:
-        """S of the contact and collision tests (class docstring); None without a covariance and a residual
-        model (the contact flag then stays, the collision test takes σ = 0)."""
+                         tau_cov: np.ndarray | None, sticking: np.ndarray | None) -> np.ndarray | None:
+        """S of the contact and collision tests (class docstring), ``tau_cov`` already widened by the static friction
+        band ``sticking`` (σ²_s (n,) or None); None without a covariance and a residual model (the contact flag then
+        stays, the collision test takes σ = 0)."""
         if self.observer.uses_residual_model:
             mean, variance = self.observer.prediction
         elif self._contact_residual is not None:
@@ -303,4 +345,6 @@ class Estimator:
                               else self._contact_residual.predict(qd))
         else:
             return tau_cov
+        if tau_cov is None and sticking is not None:      # no P to carry the band: it joins the residual's variance
+            variance = variance + sticking
         return contact_covariance(tau_cov, mean, variance, self.observer.uses_residual_model)

@@ -24,6 +24,7 @@ from kvark_ros.core.files import read_yaml
 from kvark_ros.core.observers.base import DEFAULT_SAMPLE_PERIOD, FilterTuning
 from kvark_ros.core.observers.momentum_observers import MomentumNoise
 from kvark_ros.core.residual import LEARNED_BASELINES, KMPResidualModel, ResidualModelError
+from kvark_ros.core.stiction import StictionBand
 
 MODEL_FILE = "model.yaml"
 AUGMENTATION_FILE = "augmentation.yaml"
@@ -50,6 +51,7 @@ class TrainedModel:
     momentum_noise: MomentumNoise | None = None
     augmentation: Augmentation | None = None
     sample_period: float = DEFAULT_SAMPLE_PERIOD   # t_s, s: median period of the training data
+    stiction: StictionBand | None = None           # static friction band per joint (None: not identified)
 
     @property
     def sample_rate(self) -> float:
@@ -74,7 +76,8 @@ def save_model(directory: str | os.PathLike, model: TrainedModel) -> None:
                     "baselines": {name: model.baseline_tunings[name].to_dict() for name in model.baselines},
                     "momentum_noise": None if model.momentum_noise is None else model.momentum_noise.to_dict(),
                     "augmentation_sha256": None if model.augmentation is None else model.augmentation.sha256,
-                    "sample_rate_hz": model.sample_rate}
+                    "sample_rate_hz": model.sample_rate,
+                    "stiction": None if model.stiction is None else model.stiction.to_dict()}
         if model.augmentation is not None:
             (staging / AUGMENTATION_FILE).write_text(model.augmentation.text)
         (staging / MODEL_FILE).write_text(yaml.safe_dump(document, sort_keys=False))
@@ -125,6 +128,7 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
         sample_period = 1.0 / float(document.get("sample_rate_hz", 1.0 / DEFAULT_SAMPLE_PERIOD))
         if not 0.0 < sample_period < 1.0:
             raise ValueError(f"sample_rate_hz {document.get('sample_rate_hz')!r} is not a rate above 1 Hz")
+        stiction = None if document.get("stiction") is None else StictionBand.from_dict(document["stiction"])
     except (KeyError, TypeError, ValueError) as exc:
         raise ResidualModelError(f"{path}: incomplete or invalid model file ({exc}); retrain the model") from exc
     if joint_names is not None and tuple(joint_names) != names:
@@ -145,7 +149,7 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
     if sizes != {len(names)}:
         raise ResidualModelError(f"{path}: residual models and filter tunings disagree on the number of joints")
     return TrainedModel(robot, names, residual, tuning, dict(document.get("info") or {}), baselines,
-                        baseline_tunings, momentum_noise, augmentation, sample_period)
+                        baseline_tunings, momentum_noise, augmentation, sample_period, stiction)
 
 
 def _load_augmentation(directory: Path, joint_names: tuple[str, ...], recorded: str | None) -> Augmentation | None:

@@ -2,7 +2,8 @@
 
 Everything the filters need from the robot lives here: generalized momentum and its input
 (paper v1 eqs. 5-8), inverse dynamics (eq. 27's tau_EL), the frame Jacobian, and the damped
-pseudo-inverse that maps external joint torques to a wrench (paper v2 eq. 39).
+pseudo-inverse that maps external joint torques to a wrench (paper v2 eq. 39), with the wrench directions
+it cannot sense near singular poses (docs/method.md §1.4.1).
 
 An ``Augmentation`` (``kvark diagnose``, docs/method.md §8) adds the physical effects the URDF lacks:
 payload and armature inside M, C, g; the joint offset as a corrected q; friction, drive gain,
@@ -14,13 +15,15 @@ Sign convention (docs/method.md §1.2): ``M q̈ + C q̇ + g + τ_f = τ_m + τ_e
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 from importlib import metadata
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import TYPE_CHECKING, NamedTuple, Sequence
 
 import numpy as np
 import pinocchio as pin
+from scipy.linalg.lapack import dpotrf
 
 from kvark_ros.core.augmentation import Augmentation
 from kvark_ros.core.config import EXAMPLE_ROBOT_DATA_PREFIX
@@ -54,6 +57,31 @@ def flange_link_parameters(model: pin.Model, flange_frame_id: int, change: np.nd
         total += np.array([m, *h, inertia[0, 0], inertia[0, 1], inertia[1, 1], inertia[0, 2], inertia[1, 2],
                            inertia[2, 2]])
     return total
+
+
+def condition_number(jac: np.ndarray) -> float:
+    """κ = σ_max/σ_min of a 6×n Jacobian (∞ for n < 6 or σ_min = 0); the same in base and ee axes."""
+    sigma = np.linalg.svd(jac, compute_uv=False)
+    return float(sigma[0] / sigma[-1]) if sigma.size == 6 and sigma[-1] > 0.0 else math.inf
+
+
+class WrenchSolution(NamedTuple):
+    """``RobotModel.solve_wrench``'s result, all in the axes it was asked for (a tuple: cheap per sample).
+
+    wrench: (6,) [N, N·m]; cov: (6, 6) or None; weak: (6, k) orthonormal wrench directions (columns,
+    mixed force/moment like δ) with σ_i < δ, whose component the damping sets rather than the data
+    (docs/method.md §1.4.1), k = 0 almost always; jacobian: the (6, n) J it came from.
+    """
+
+    wrench: np.ndarray
+    cov: np.ndarray | None
+    weak: np.ndarray
+    jacobian: np.ndarray
+
+    @property
+    def condition(self) -> float:
+        """κ = σ_max/σ_min of J (an SVD: computed when asked, not per sample)."""
+        return condition_number(self.jacobian)
 
 
 class RobotModelError(ValueError):
@@ -145,6 +173,8 @@ class RobotModel:
         self.data = self.model.createData()
         self._zero = np.zeros(self.model.nv)
         self._eye6 = np.eye(6)
+        self._no_weak = np.zeros((6, 0))
+        self._no_weak.flags.writeable = False
         self.payload: Payload | None = None
         if payload is not None:
             self.set_payload(payload)
@@ -272,19 +302,49 @@ class RobotModel:
 
     def wrench_from_torque(self, q: np.ndarray, tau_ext: np.ndarray, tau_cov: np.ndarray | None,
                            damping: float, frame: str = "base") -> tuple[np.ndarray, np.ndarray | None]:
-        """External wrench and its covariance from external joint torques.
+        """External wrench and its covariance from external joint torques, without the damping bias.
 
         ``F = (J Jᵀ + δ² I)⁻¹ J τ_ext`` (paper v2 eq. 39) and ``Σ_F = J⁺ P J⁺ᵀ`` with
         ``J⁺ = (J Jᵀ + δ² I)⁻¹ J``. F: (6,) [N, N·m]; Σ_F: (6, 6), ``None`` when ``tau_cov`` is.
         """
+        solution = self.solve_wrench(q, tau_ext, tau_cov, damping, frame)
+        return solution.wrench, solution.cov
+
+    def solve_wrench(self, q: np.ndarray, tau_ext: np.ndarray, tau_cov: np.ndarray | None, damping: float,
+                     frame: str = "base", prior: tuple[float, float] | None = None) -> WrenchSolution:
+        """The wrench of ``wrench_from_torque``, its Jacobian and the unobservable directions (docs/method.md §1.4.1).
+
+        Whether some σ_i < δ is one 6×6 Cholesky; only then an SVD gives the directions. ``prior``: (force N,
+        moment N·m) standard deviations of the unknown wrench; with it (and ``tau_cov``) Σ_F adds the damping
+        bias along the weak directions and equals ``wrench_from_torque``'s elsewhere. All in ``frame``'s axes.
+        """
         jac = self.jacobian(q, frame)
-        damped = jac @ jac.T + (damping * damping) * self._eye6
-        pinv = solve_spd(damped, jac)                                     # eq. 39: J⁺ (6, n)
+        gram = jac @ jac.T
+        delta2 = damping * damping
+        pinv = solve_spd(gram + delta2 * self._eye6, jac)                 # eq. 39: J⁺ = (J Jᵀ + δ² I)⁻¹ J (6, n)
         wrench = pinv @ tau_ext
+        # σ_min(J) ≥ δ ⇔ J Jᵀ − δ² I is positive definite (Cholesky succeeds): the regular poses stop here.
+        if damping == 0.0 or dpotrf(gram - delta2 * self._eye6, overwrite_a=1)[1] == 0:
+            weak, strength = self._no_weak, None
+        else:
+            weak, strength = self._weak_directions(jac, damping)
         if tau_cov is None:
-            return wrench, None
-        wrench_cov = pinv @ tau_cov @ pinv.T
-        return wrench, 0.5 * (wrench_cov + wrench_cov.T)
+            return WrenchSolution(wrench, None, weak, jac)
+        wrench_cov = pinv @ tau_cov @ pinv.T                              # J⁺ P J⁺ᵀ
+        if prior is not None and strength is not None:
+            shrink = delta2 / (strength * strength + delta2)              # c_i = δ²/(σ_i²+δ²)
+            bias = (weak * shrink) @ weak.T                               # B = U_w diag(c) U_wᵀ: I − J⁺Jᵀ on U_w
+            variance = np.repeat(np.square(prior), 3)                     # Σ_prior = diag(f², f², f², m², m², m²)
+            wrench_cov += (bias * variance) @ bias                        # + B Σ_prior Bᵀ (§1.4.1)
+        return WrenchSolution(wrench, 0.5 * (wrench_cov + wrench_cov.T), weak, jac)
+
+    @staticmethod
+    def _weak_directions(jac: np.ndarray, damping: float) -> tuple[np.ndarray, np.ndarray]:
+        """The left singular vectors (6, k) of J with σ_i < δ, and those σ_i (k,), σ = 0 for the 6 − n missing."""
+        u, sigma, _ = np.linalg.svd(jac)                                  # J = U diag(σ) Vᵀ, U (6, 6)
+        sigma = np.concatenate((sigma, np.zeros(6 - sigma.size)))
+        weak = sigma < damping
+        return u[:, weak], sigma[weak]
 
     def sensor_torque(self, q: np.ndarray, frame: str, wrench: np.ndarray) -> np.ndarray:
         """``τ = Jᵀ w`` (paper v2 eq. 37) for a wrench (6,) measured in ``frame``'s own axes at its origin."""

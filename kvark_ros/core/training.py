@@ -28,6 +28,7 @@ from kvark_ros.core.observers.momentum_observers import MomentumNoise
 from kvark_ros.core.residual import INPUT_KINDS, LEARNED_BASELINES, KMPResidualModel
 from kvark_ros.core.residual.kmp_inputs import fit_kmp, second_inputs
 from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.stiction import StictionBand, friction_torque, identify_band
 from kvark_ros.core.tuning import match_covariances, virtual_measurements
 
 N_SUPPORT = 40               # GMR support points per joint (q̇ only)
@@ -261,5 +262,9 @@ def train_model(robot: RobotModel, robot_name: str, segments: Sequence[Estimator
     # t_s: the median period of all training samples; the config's filter times convert at it (PerSample).
     sample_period = float(np.median(np.concatenate([np.diff(seg.stamp) for seg in data.segments])))
     log(f"[train] sample rate {1.0 / sample_period:.1f} Hz (recorded in the model: the filter's times convert at it)")
+    friction = friction_torque(data.tau_r, robot.augmentation, data.q, data.qd, np.zeros_like(data.qd))
+    stiction = StictionBand(identify_band(data.qd, friction))
+    log("[train] static friction band F_s (N·m): "
+        + ", ".join(f"{name} {value:.2f}" for name, value in zip(robot.joint_names, stiction.band)))
     return TrainedModel(robot_name, robot.joint_names, kmp, tuning, info, residuals, tunings, noise,
-                        robot.augmentation, sample_period)
+                        robot.augmentation, sample_period, stiction)

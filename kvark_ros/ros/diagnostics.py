@@ -1,8 +1,9 @@
-"""The node's ``/diagnostics`` statuses (model, input, filter, tare), built from plain numbers.
+"""The node's ``/diagnostics`` statuses (model, input, filter, wrench, tare), built from plain numbers.
 
 Kept apart from the node so that the node is the adapter only. ``filter`` shows the contact and the
-collision test, ``tare`` the tare's state (idle, averaging, active), its offset per joint (N·m) and
-the outcome of the last request.
+collision test, ``wrench`` the Jacobian's condition number and the wrench directions the joints cannot
+sense (docs/method.md §1.4.1), ``tare`` the tare's state (idle, averaging, active), its offset per joint
+(N·m) and the outcome of the last request.
 """
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
-from kvark_ros.core.estimator import Status
+from kvark_ros.core.estimator import Estimate, Status
 from kvark_ros.core.model_checks import model_warnings
 from kvark_ros.core.pairing import Reject
 from kvark_ros.core.tare import Tare
@@ -132,6 +133,26 @@ class StatusBuilder:
         if estimator is not None and estimator.collision.flag:
             state = "collision"
         return self.status(0, "filter", state, values)
+
+    def wrench(self, estimate: Estimate | None, estimator: Any) -> DiagnosticStatus:
+        """The newest estimate's Jacobian condition number κ and unobservable wrench directions (σ_i < δ, in
+        ``wrench_frame`` axes, [force; moment] unit vectors): WARN while there is one, else OK."""
+        if estimate is None or estimator is None:
+            return self.status(0, "wrench", "no estimate yet", {})
+        settings = estimator.config.wrench
+        weak = estimate.weak_directions
+        values: dict[str, Any] = {
+            "jacobian_condition": f"{estimate.jacobian_condition:.4g}", "unobservable_directions": weak.shape[1],
+            "samples_with_unobservable_direction": estimator.unobservable_samples, "axes": estimate.wrench_frame,
+            "damping": f"{settings.damping:g}", "prior_force_n": f"{settings.prior_force:g}",
+            "prior_moment_nm": f"{settings.prior_moment:g}"}
+        values.update({f"direction {i + 1}": np.array2string(np.round(direction, 3) + 0.0)    # + 0.0: no "-0."
+                       for i, direction in enumerate(weak.T)})
+        if weak.shape[1]:
+            return self.status(1, "wrench", f"{weak.shape[1]} wrench direction(s) unobservable near a singular pose "
+                               f"(condition number {estimate.jacobian_condition:.3g}): their covariance is the "
+                               "wrench.prior_* scale", values)
+        return self.status(0, "wrench", f"observable (condition number {estimate.jacobian_condition:.3g})", values)
 
     def tare(self, tare: Tare | None) -> DiagnosticStatus:
         """The tare's state and offset per joint (N·m); WARN when the last averaging was aborted."""

@@ -10,7 +10,8 @@ Topics, services and parameters: the README's tables. In: ``input.joint_states_t
 JointState with ``input.torque_source: effort_commands_joint_state``), ``robot_description``; out:
 the estimate topics of ``kvark_ros.ros.publishers`` (τ_ext, the wrench in base and ee_frame axes,
 the uncertainty, the contact and collision flags; QoS ``output.qos``) and ``/diagnostics``;
-services ``~/reset`` (also clears the tare), ``~/reload_model`` and ``~/tare``.
+services ``~/reset`` (also clears the tare), ``~/reload_model`` and ``~/tare``. ``/diagnostics`` has
+the statuses model, input, filter, wrench (unobservable wrench directions near singular poses) and tare.
 
 ``~/tare`` starts averaging τ_ext over ``tare.duration`` s of sample time at rest
 (``kvark_ros.core.tare``) and returns at once: a service callback that waited for the samples would
@@ -69,7 +70,7 @@ from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
 from kvark_ros.core.config import NODE_NAME, ROBOT_DESCRIPTION, ConfigError
-from kvark_ros.core.estimator import Estimator
+from kvark_ros.core.estimator import Estimate, Estimator
 from kvark_ros.core.pairing import RESET, JointColumns, Reject, Sample, StreamPairer, stamp_seconds
 from kvark_ros.core.tare import TareError
 from kvark_ros.ros import parameters
@@ -112,7 +113,7 @@ class EstimatorNode(Node):
         self._missing_detail = ""
         self._archived: Counter[str] = Counter()     # Status counts of estimators replaced by a reload
         self._received = 0
-        self._last_covariance: np.ndarray | None = None
+        self._last: Estimate | None = None          # newest estimate, for /diagnostics
         self._diag_time = self.get_clock().now().nanoseconds / 1e9
         self._diag_received = self._diag_published = self._diag_lost = 0
         self._diag_counts: Counter[str] = Counter()
@@ -319,7 +320,7 @@ class EstimatorNode(Node):
                 estimate = self._estimator.step(sample.stamp, sample.q, sample.qd, sample.tau_m)
                 if estimate is not None:
                     self._outputs.publish(estimate, sample.tag, self._base_frame, self._config.ee_frame)
-                    self._last_covariance = estimate.tau_cov
+                    self._last = estimate
 
     @property
     def _published(self) -> int:
@@ -412,8 +413,9 @@ class EstimatorNode(Node):
                                  self._reload_problem, math.nan if period is None else 1.0 / period),
             self._statuses.input(window, {"joint_states_received": self._received, "joint_states_lost": lost,
                                           "estimates_published": self._published}, self._missing_detail),
-            self._statuses.filter(window, estimator, self._last_covariance,
+            self._statuses.filter(window, estimator, None if self._last is None else self._last.tau_cov,
                                   "no estimate yet" if reporting else "observer reports no covariance"),
+            self._statuses.wrench(self._last, estimator),
             self._statuses.tare(estimator.tare if estimator is not None else None)]
         self._pub_diagnostics.publish(message)
 

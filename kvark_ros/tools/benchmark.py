@@ -87,7 +87,10 @@ def acceptance(scenarios: Mapping[str, Any]) -> list[str]:
                              f"{'pass' if ok else 'FAIL'})")
         coverage = observers["kvark"]["coverage95"]
         ok = coverage is not None and 0.85 <= coverage <= 0.99
-        lines.append(f"- {name}: K-VARK coverage95 = {coverage} (0.85-0.99: {'pass' if ok else 'FAIL'})")
+        per_joint = observers["kvark"].get("coverage95_per_joint")
+        spread = (f"; per joint {min(per_joint):.3f}-{max(per_joint):.3f}, vector "
+                  f"{observers['kvark'].get('vector_coverage95')}" if per_joint else "")
+        lines.append(f"- {name}: K-VARK coverage95 = {coverage} (0.85-0.99: {'pass' if ok else 'FAIL'}){spread}")
     return lines
 
 

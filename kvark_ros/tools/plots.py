@@ -258,3 +258,36 @@ def plot_error_bars(metrics: Mapping[str, Mapping[str, float]], key: str, ylabel
     fig.tight_layout()
     fig.savefig(path, **PNG)
     return path
+
+
+def plot_reliability(observers: Mapping[str, Mapping], path: Path) -> Path | None:
+    """Reliability diagram: observed against nominal coverage (metrics' ``reliability``) of every observer that
+    reports a covariance, solid for the per-joint ±z σ intervals, dashed for the χ²_n ellipsoid of the whole
+    vector; the diagonal is perfect calibration, below it too confident, above it too cautious. None (nothing
+    written) when no observer has a reliability table."""
+    tables = {name: entry["reliability"] for name, entry in observers.items() if entry.get("reliability")}
+    if not tables:
+        return None
+    fig = Figure(figsize=(5.0, 4.6), dpi=DPI)
+    ax = fig.subplots()
+    ax.plot([0, 1], [0, 1], color="0.5", lw=0.8, ls=":", label="perfect calibration")
+    for name, style in _styles(list(tables), None).items():
+        table = tables[name]
+        style = {**style, "lw": 2.4 if name == HIGHLIGHTED else 1.0}
+        ax.plot(table["nominal"], table["joint"], marker="o", ms=3, label=f"{name} per joint", **style)
+        if table.get("vector") is not None:
+            ax.plot(table["nominal"], table["vector"], marker="s", ms=3, ls="--", label=f"{name} vector", **style)
+    observed = [value for t in tables.values() for value in [*t["joint"], *(t.get("vector") or [])]]
+    low = np.floor(10.0 * min(0.4, *observed)) / 10.0     # from 0.4, or lower to show a far too confident one
+    ax.text(0.98, low + 0.02 * (1.0 - low), "below the diagonal: σ too small", ha="right", va="bottom",
+            fontsize=7, color="0.4", transform=ax.transData)
+    ax.set_xlim(low, 1.0)
+    ax.set_ylim(low, 1.0)
+    ax.set_aspect("equal")
+    ax.set_xlabel("nominal coverage")
+    ax.set_ylabel("observed coverage")
+    ax.set_title("Calibration of the reported covariance", fontsize=10)
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path, **PNG)
+    return path

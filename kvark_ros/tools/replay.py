@@ -33,7 +33,7 @@ from kvark_ros.core.robot_model import RobotModel, urdf_sha256
 from kvark_ros.io import BagError, BagWriter, RecordedRun, write_run_messages
 from kvark_ros.io.alignment import read_inputs
 from kvark_ros.tools.reference import align_reference
-from kvark_ros.tools.metrics import observer_metrics
+from kvark_ros.tools.metrics import mahalanobis_squared, observer_metrics
 
 OUTPUT_PREFIX = "/kvark"
 
@@ -51,7 +51,9 @@ class GroundTruth:
 class ObserverRun:
     """One observer's outputs along the inputs; rows where ``valid`` is False had no estimate.
     ``contact``, ``collision``: the Estimator's debounced contact flag and its collision flag (T,) bool;
-    ``tare``: what a ``--tare-at`` tare did (state, offset per joint N·m, note), or None."""
+    ``tare``: what a ``--tare-at`` tare did (state, offset per joint N·m, note), or None;
+    ``mahalanobis``: (T,) eᵀP⁻¹e of the error e = τ̂ − τ_true under the full reported covariance P (NaN without an
+    estimate or a finite truth), or None without a covariance or a truth (kept per sample: memory stays (T,))."""
 
     name: str
     tau_ext: np.ndarray
@@ -64,6 +66,19 @@ class ObserverRun:
     contact: np.ndarray
     collision: np.ndarray
     tare: dict | None = None
+    mahalanobis: np.ndarray | None = None
+    condition: np.ndarray | None = None         # (T,) κ of J (NaN without an estimate), docs/method.md §1.4.1
+    unobservable: np.ndarray | None = None      # (T,) int: wrench directions the joints cannot sense (σ_i < δ)
+
+    def singularity(self) -> dict[str, float | None]:
+        """metrics.json's wrench-observability figures: the share of estimates with an unobservable wrench
+        direction and the median and maximum condition number of J (None without estimates)."""
+        if self.condition is None or self.unobservable is None or not self.valid.any():
+            return {"unobservable_share": None, "condition_median": None, "condition_max": None}
+        condition = self.condition[self.valid]
+        return {"unobservable_share": round(float(np.mean(self.unobservable[self.valid] > 0)), 6),
+                "condition_median": round(float(np.median(condition)), 3),
+                "condition_max": round(float(np.max(condition)), 3)}
 
 
 def _align(stamp: np.ndarray, source_stamp: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -150,11 +165,13 @@ def _wrench_of_torque(robot: RobotModel, config: EstimatorConfig, q: np.ndarray,
 
 
 def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: EstimatorInputs, name: str,
-                 oracle: ResidualPredictor | None = None, tare_at: float | None = None) -> ObserverRun:
+                 oracle: ResidualPredictor | None = None, tare_at: float | None = None,
+                 truth_tau: np.ndarray | None = None) -> ObserverRun:
     """Step a fresh Estimator with observer ``name`` over every input sample (``oracle``: for the oracle).
 
     ``tare_at``: s after the first sample from which a tare is started (``Estimator.start_tare``, as the node's
-    ``~/tare``) at the first sample the arm is at rest; its outcome is in ``ObserverRun.tare``."""
+    ``~/tare``) at the first sample the arm is at rest; its outcome is in ``ObserverRun.tare``. ``truth_tau``: the
+    true τ_ext (T, n) N·m, for ``ObserverRun.mahalanobis`` (its time is not counted in ``us_per_step``)."""
     estimator = Estimator.from_config(config, trained, observer=name, oracle=oracle)
     tare_stamp = None if tare_at is None else inputs.stamp[0] + tare_at
     tare_started = False
@@ -166,6 +183,9 @@ def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: Estimat
     valid = np.zeros(count, dtype=bool)
     contact = np.zeros(count, dtype=bool)
     collision = np.zeros(count, dtype=bool)
+    distance = np.full(count, np.nan)
+    condition, unobservable = np.full(count, np.nan), np.zeros(count, dtype=int)
+    scoring = 0.0                      # s spent on the Mahalanobis statistic and κ (an SVD), not the estimator's
     started = time.perf_counter()
     for k in range(count):
         if tare_stamp is not None and not tare_started and inputs.stamp[k] >= tare_stamp:
@@ -179,10 +199,17 @@ def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: Estimat
             continue
         valid[k], contact[k], collision[k] = True, estimate.contact, estimate.collision
         tau[k], wrench[k] = estimate.tau_ext, estimate.wrench
+        scored = time.perf_counter()
+        condition[k], unobservable[k] = estimate.jacobian_condition, estimate.weak_directions.shape[1]
+        scoring += time.perf_counter() - scored
         if estimate.tau_cov is not None:
             tau_var[k] = np.diag(estimate.tau_cov)
             wrench_var[k] = np.diag(estimate.wrench_cov)
-    elapsed = time.perf_counter() - started
+            if truth_tau is not None:
+                scored = time.perf_counter()
+                distance[k] = mahalanobis_squared(estimate.tau_ext - truth_tau[k], estimate.tau_cov)
+                scoring += time.perf_counter() - scored
+    elapsed = time.perf_counter() - started - scoring
     reports = estimator.observer.reports_covariance
     rejected = {status: number for status, number in estimator.counts.items() if status != "ok"}
     tare = None
@@ -191,7 +218,8 @@ def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: Estimat
                 "offset": [round(float(v), 6) for v in estimator.tare.offset], "note": estimator.tare.note}
     return ObserverRun(name, tau, np.sqrt(tau_var) if reports else None, wrench,
                        np.sqrt(wrench_var) if reports else None, valid, 1e6 * elapsed / max(count, 1), rejected,
-                       contact, collision, tare)
+                       contact, collision, tare, mahalanobis=distance if reports and truth_tau is not None else None,
+                       condition=condition, unobservable=unobservable)
 
 
 def write_estimates(path: Path, run: RecordedRun, inputs: EstimatorInputs, results: Sequence[ObserverRun],
@@ -243,7 +271,7 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
     decode_seconds = time.perf_counter() - started
     results = []
     for step, name in enumerate(observers, start=1):
-        result = run_observer(config, trained, inputs, name, oracle, tare_at)
+        result = run_observer(config, trained, inputs, name, oracle, tare_at, None if truth is None else truth.tau_ext)
         results.append(result)
         log(f"[replay] {step}/{len(observers)} {name:<12} {result.us_per_step:7.1f} µs/step, "
             f"{result.valid.sum()} estimates")

@@ -13,6 +13,7 @@ from kvark_ros.tools.plots import (
     contact_onsets,
     plot_error_bars,
     plot_errors,
+    plot_reliability,
     plot_time_histories,
 )
 
@@ -28,15 +29,42 @@ def _cell(value: Any, digits: int = 3) -> str:
     return str(value)
 
 
+def _span(values: Sequence[float] | None) -> str:
+    """'min–max' of per-joint values, '–' without them."""
+    return "–" if not values else f"{min(values):.3f}–{max(values):.3f}"
+
+
 def metrics_table(observers: Mapping[str, Mapping[str, Any]]) -> str:
-    """One row per observer: joint RMSE, force/moment RMSE, |error| statistics, coverage, speed."""
+    """One row per observer: joint RMSE, force/moment RMSE, |error| statistics, coverage (all joint samples, the
+    worst and best joint, the whole vector), speed."""
     keys = ("joint_rmse_mean", "force_rmse_mean", "moment_rmse_mean", "mean_abs", "p95", "max", "temporal_std",
-            "coverage95", "us_per_step")
+            "coverage95")
     header = ("| observer | joint RMSE (N·m) | force RMSE (N) | moment RMSE (N·m) | mean abs | p95 | max | "
-              "temporal std | coverage95 | µs/step |")
-    lines = [header, "|" + "---|" * (len(keys) + 1)]
+              "temporal std | coverage95 | coverage95 per joint min–max | vector coverage95 | µs/step |")
+    lines = [header, "|" + "---|" * (len(keys) + 4)]
     for name, entry in observers.items():
-        lines.append(f"| {name} | " + " | ".join(_cell(entry.get(key)) for key in keys) + " |")
+        cells = [_cell(entry.get(key)) for key in keys]
+        cells += [_span(entry.get("coverage95_per_joint")), _cell(entry.get("vector_coverage95")),
+                  _cell(entry.get("us_per_step"))]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def calibration_table(observers: Mapping[str, Mapping[str, Any]]) -> str:
+    """One row per observer with a covariance and ground truth: coverage95 per joint, of the whole vector, the
+    share of samples with a miss on any joint against its nominal, and the reliability table; '' without any."""
+    rows = [(name, entry) for name, entry in observers.items() if entry.get("coverage95_per_joint")]
+    if not rows:
+        return ""
+    levels = " / ".join(f"{level:g}" for level in rows[0][1]["reliability"]["nominal"])
+    lines = ["| observer | coverage95 per joint | vector coverage95 | any-joint miss (nominal) | "
+             f"joint coverage at {levels} | vector coverage at {levels} |", "|---|---|---|---|---|---|"]
+    for name, entry in rows:
+        table = entry["reliability"]
+        lines.append(f"| {name} | {' '.join(_cell(v) for v in entry['coverage95_per_joint'])} | "
+                     f"{_cell(entry['vector_coverage95'])} | {_cell(entry['any_joint_miss_share'])} "
+                     f"({_cell(entry['any_joint_miss_nominal'])}) | {' / '.join(_cell(v) for v in table['joint'])} | "
+                     + (" / ".join(_cell(v) for v in table["vector"]) if table["vector"] else "–") + " |")
     return "\n".join(lines)
 
 
@@ -87,6 +115,8 @@ def write_replay_report(out: Path, metrics: Mapping[str, Any], robot: Any, input
                                    title="Error of the external joint torque"))
         figures.append(plot_error_bars(metrics["observers"], "joint_rmse_mean", "joint RMSE (N·m)",
                                        out / "joint_rmse.png"))
+        reliability = plot_reliability(metrics["observers"], out / "reliability.png")
+        figures += [reliability] if reliability is not None else []
     text = [f"# Replay of `{metrics['bag']}`", "",
             f"- ground truth: {metrics['ground_truth']}",
             f"- {metrics['samples']} samples over {metrics['duration_s']} s; τ_m from {metrics['torque_source']}; "
@@ -97,18 +127,31 @@ def write_replay_report(out: Path, metrics: Mapping[str, Any], robot: Any, input
     if contact:
         text += ["Contact flag (true contact: |τ_ext| > 0.5 N·m on a joint; contact-free: none, and 0.2 s after "
                  "the last):", "", contact, ""]
-    text += [figure_notes(list(plotted), best, truth is not None, len(onsets)), ""]
+    calibration = calibration_table(metrics["observers"])
+    if calibration:
+        text += ["Calibration of the reported covariance (coverage95: share of samples inside ±1.96 σ; vector: "
+                 "inside the χ²_n 95 % ellipsoid of the full covariance; any-joint miss: share of samples with a "
+                 "miss on some joint, nominal 1 − 0.95ⁿ for independent joints):", "", calibration, ""]
+    text += [figure_notes(list(plotted), best, truth is not None, len(onsets),
+                          any(path.name == "reliability.png" for path in figures)), ""]
     text += [f"![{path.stem}]({path.name})" for path in figures]
     write_text_atomically(out / "report.md", "\n".join(text) + "\n")
     return figures
 
 
-def figure_notes(plotted: Sequence[str], best: str | None, has_truth: bool, onsets: int) -> str:
-    """What the figures show, for the report."""
+def figure_notes(plotted: Sequence[str], best: str | None, has_truth: bool, onsets: int,
+                 reliability: bool = False) -> str:
+    """What the figures show, for the report; ``reliability``: whether reliability.png was drawn."""
     notes = (f"Figures: {', '.join(plotted)}; K-VARK thick (blue), "
              + (f"the observer with the lowest RMSE ({best}, red) above the others, " if best else "")
              + "the others thin underneath; 95 % bands of the highlighted ones where they report one.")
     if not has_truth:
-        return notes + " No ground truth: no error figure, no RMSE bars, no contact-onset insets."
-    return (notes + " The ground truth is black, drawn on top. `joint_errors.png`: the estimate minus the truth "
-            f"over time. {onsets} contact onset(s) zoomed in insets (±{INSET_HALF_WIDTH} s, at most {MAX_INSETS}).")
+        return notes + (" No ground truth: no error figure, no RMSE bars, no reliability diagram, no contact-onset "
+                        "insets.")
+    notes += (" The ground truth is black, drawn on top. `joint_errors.png`: the estimate minus the truth "
+              f"over time. {onsets} contact onset(s) zoomed in insets (±{INSET_HALF_WIDTH} s, at most {MAX_INSETS}).")
+    if reliability:
+        notes += (" `reliability.png`: observed against nominal coverage of every observer with a covariance, solid "
+                  "per joint (±z σ), dashed for the whole vector (χ²_n ellipsoid); on the dotted diagonal the "
+                  "reported uncertainty is honest, below it too confident, above it too cautious.")
+    return notes

@@ -92,3 +92,18 @@ def debounced_margin(stamps: np.ndarray, statistics: np.ndarray, threshold: floa
     ends = np.searchsorted(stamps, stamps + debounce, side="right")
     held = np.array([statistics[k:end].min() for k, end in enumerate(ends)])
     return float(threshold / held.max())
+
+
+@pytest.fixture
+def saved(monkeypatch) -> list:
+    """Every matplotlib Figure saved during the test (still written to its file), for plot tests."""
+    from matplotlib.figure import Figure
+    figures: list = []
+    original = Figure.savefig
+
+    def keep(fig, *args, **kwargs):
+        figures.append(fig)
+        return original(fig, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", keep)
+    return figures

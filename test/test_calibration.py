@@ -14,7 +14,6 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from matplotlib.figure import Figure
 from scipy.stats import chi2, norm
 
 from kvark_ros.core.model_store import load_model
@@ -148,20 +147,6 @@ def test_reliability_table_is_monotone_and_on_the_diagonal_when_calibrated(corre
 
 
 # --------------------------------------------------------------------------- report and reliability diagram
-
-@pytest.fixture
-def saved(monkeypatch) -> list[Figure]:
-    """Every figure saved during the test (still written to its file)."""
-    figures: list[Figure] = []
-    original = Figure.savefig
-
-    def keep(fig, *args, **kwargs):
-        figures.append(fig)
-        return original(fig, *args, **kwargs)
-
-    monkeypatch.setattr(Figure, "savefig", keep)
-    return figures
-
 
 def _replay_inputs(correlated, with_truth: bool) -> tuple:
     """What replay hands write_replay_report: kvark calibrated, kf overconfident, momentum without covariance;

@@ -29,20 +29,6 @@ NAMES = ("arm_shoulder", "arm_elbow", "arm_wrist")
 INDEX_LABEL = re.compile(r"^(joint\s*)?\d+$")   # a bare or "joint 3"-style index, where a name belongs
 
 
-@pytest.fixture
-def saved(monkeypatch) -> list[Figure]:
-    """Every figure saved during the test (still written to its file)."""
-    figures: list[Figure] = []
-    original = Figure.savefig
-
-    def keep(fig, *args, **kwargs):
-        figures.append(fig)
-        return original(fig, *args, **kwargs)
-
-    monkeypatch.setattr(Figure, "savefig", keep)
-    return figures
-
-
 def _truth(stamp: np.ndarray, contacts: list[tuple[float, float, int, float]]) -> np.ndarray:
     """A true τ_ext (T, 3): 0.05 N·m noise plus each (start, end, joint, torque) contact."""
     rng = np.random.default_rng(0)

@@ -74,3 +74,21 @@ def test_a_sticking_joint_does_not_flag_contact_and_a_push_still_does(estimators
     pushed = gravity - np.array([8.0, 0, 0, 0, 0, 0, 0])
     flags = [e.contact for e in _run(widened, pushed, np.zeros(7), 100)]
     assert any(flags[:30])
+
+
+def test_the_collision_flag_is_not_delayed_by_the_band(panda_config, panda_trained):
+    """A 30 N·m hit on a joint at rest whose static band is 20 N·m: the contact test, widened by F_s²/3 (σ_s
+    11.5 N·m), would wait; the collision flag (10 N·m threshold here, below the hit) rises on the same sample with
+    and without the band, because it keeps the unwidened σ."""
+    config = replace(panda_config, contact=replace(panda_config.contact, collision_torque=10.0))
+    off = replace(config, filter=replace(config.filter, stiction_velocity=0.0))
+    trained = replace(panda_trained, stiction=StictionBand(np.full(7, 20.0)))
+    gravity = RobotModel.from_config(panda_config).gravity(Q0)
+    hit = gravity - np.array([0.0, 30.0, 0, 0, 0, 0, 0])
+    firsts = []
+    for settings in (config, off):
+        estimator = Estimator.from_config(settings, trained)
+        _run(estimator, gravity, np.zeros(7), 200)
+        flags = [estimator.step(0.4 + 0.002 * k, Q0, np.zeros(7), hit).collision for k in range(1, 100)]
+        firsts.append(flags.index(True))
+    assert firsts[0] == firsts[1]

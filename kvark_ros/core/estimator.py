@@ -320,6 +320,11 @@ class Estimator:
         self.counts[Status.OK] += 1
         covariance = self._test_covariance(q, qd, g, tau_cov, sticking)
         contact = self.contact.flag if covariance is None else self.contact.update(stamp, tau_ext, covariance)
+        if sticking is not None and covariance is not None:
+            # The collision flag is a safety stop with its own absolute threshold: it keeps the unwidened σ, so a
+            # hit on a sticking joint is not delayed until it exceeds the static band (docs/method.md §4.11).
+            covariance = covariance.copy()
+            covariance.flat[:: n + 1] -= sticking
         collision = self.collision.update(tau_ext, covariance)
         if weak.shape[1]:
             self.unobservable_samples += 1

@@ -268,7 +268,7 @@ def plot_reliability(observers: Mapping[str, Mapping], path: Path) -> Path | Non
     tables = {name: entry["reliability"] for name, entry in observers.items() if entry.get("reliability")}
     if not tables:
         return None
-    fig = Figure(figsize=(5.0, 4.6), dpi=DPI)
+    fig = Figure(figsize=(7.4, 4.6), dpi=DPI)                 # room for the legend beside the square axes
     ax = fig.subplots()
     ax.plot([0, 1], [0, 1], color="0.5", lw=0.8, ls=":", label="perfect calibration")
     for name, style in _styles(list(tables), None).items():
@@ -287,7 +287,7 @@ def plot_reliability(observers: Mapping[str, Mapping], path: Path) -> Path | Non
     ax.set_xlabel("nominal coverage")
     ax.set_ylabel("observed coverage")
     ax.set_title("Calibration of the reported covariance", fontsize=10)
-    ax.legend(fontsize=7, loc="upper left")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0)
     fig.tight_layout()
     fig.savefig(path, **PNG)
     return path

@@ -6,7 +6,11 @@ alike), so a lazy import counts the same as a top-level one.
 from __future__ import annotations
 
 import ast
+import json
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -96,6 +100,19 @@ def test_module_sizes():
     too_big = {name: size for name, size in sizes.items() if size > MAX_LINES}
     assert not too_big, too_big
     assert sizes["kvark_ros/ros/estimator_node.py"] <= MAX_NODE_LINES
+
+
+def test_the_node_loads_no_plotting_fitting_or_offline_module():
+    """Imported (against the rclpy stand-in) in a fresh interpreter: no matplotlib, no sklearn, no tools/gap/sim."""
+    code = "import json, sys\nimport kvark_ros.ros.estimator_node\nprint(json.dumps(sorted(sys.modules)))"
+    stand_in = str(ROOT / "test" / "ros_stand_in")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (stand_in, os.environ.get("PYTHONPATH"))))}
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, check=True)
+    loaded = json.loads(done.stdout)
+    assert "rclpy" in loaded and "kvark_ros.core.residual" in loaded
+    offenders = [name for name in loaded if name.split(".")[0] in ("matplotlib", "sklearn")
+                 or _package(name) in ("tools", "gap", "sim") and name.startswith("kvark_ros.")]
+    assert not offenders, offenders
 
 
 def test_readme_key_table_is_the_schema():

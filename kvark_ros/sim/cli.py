@@ -56,6 +56,11 @@ def add_simulate_parser(subparsers: Any) -> argparse.ArgumentParser:
     return parser
 
 
+def add_parser(subparsers: Any) -> None:
+    """Register ``simulate`` for the ``kvark`` command, which runs ``args.run(args)``."""
+    add_simulate_parser(subparsers).set_defaults(run=run_simulate)
+
+
 def run_simulate(args: argparse.Namespace) -> int:
     """Run ``kvark simulate`` for parsed arguments; prints progress and the real-time factor."""
     if Path(args.out).exists() and not args.overwrite:     # refuse before minutes of simulation

@@ -321,6 +321,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "subtract it) at the first sample at rest from SECONDS after the bag's start")
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--no-bag", action="store_true", help="skip writing the estimates bag")
+    parser.add_argument("--no-plots", action="store_true",
+                        help="skip the plots and report.md (metrics.json only; matplotlib is not loaded)")
     parser.set_defaults(run=run)
 
 
@@ -348,6 +350,6 @@ def run(args: argparse.Namespace) -> int:
     replay(config, trained, Path(args.bag), Path(args.out), observers,
            Path(args.reference_bag) if args.reference_bag else None, oracle, write_bag=not args.no_bag,
            log=lambda line: print(line, flush=True), truth_kind=args.ground_truth, trim=tuple(args.trim),
-           tare_at=args.tare_at)
-    print(f"[replay] wrote {args.out}/metrics.json and report.md", flush=True)
+           tare_at=args.tare_at, plots=not args.no_plots)
+    print(f"[replay] wrote {args.out}/metrics.json{'' if args.no_plots else ' and report.md'}", flush=True)
     return 0

@@ -26,9 +26,6 @@ from typing import Any, Mapping
 
 import numpy as np
 import scipy.linalg
-from sklearn.exceptions import ConvergenceWarning
-from sklearn.gaussian_process import GaussianProcessRegressor
-from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 
 from kvark_ros.core.residual.common import (
     BATCH_CHUNK,
@@ -122,6 +119,9 @@ def _fit_se_gp(x: np.ndarray, y: np.ndarray, length_scale_bounds: tuple[float, f
     bounds are relative) and the result is mapped back to physical units. The prior mean is
     zero, as in KMP: far from the data the prediction returns to 0.
     """
+    from sklearn.exceptions import ConvergenceWarning           # fitting only: loading a model needs no sklearn
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
     scale = float(np.sqrt(np.mean(y ** 2)))
     if not scale > 0.0:
         scale = 1.0

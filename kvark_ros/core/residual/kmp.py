@@ -31,7 +31,6 @@ from typing import Any, Mapping
 import numpy as np
 import scipy.linalg
 from scipy.special import logsumexp
-from sklearn.mixture import GaussianMixture
 
 from kvark_ros.core.residual.common import BATCH_CHUNK, VARIANCE_FLOOR, check_batch, check_training_data
 from kvark_ros.core.residual.files import (
@@ -170,6 +169,7 @@ def _gmr_1d(x: np.ndarray, y: np.ndarray, s: np.ndarray, n_components: int,
     The data are standardised before EM (velocity and torque scales differ by orders of
     magnitude) and the result is mapped back to physical units.
     """
+    from sklearn.mixture import GaussianMixture      # fitting only: loading a model needs no sklearn
     x_mean, x_std = x.mean(), x.std()
     y_mean, y_std = y.mean(), y.std()
     if y_std == 0.0:

@@ -14,8 +14,6 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 import scipy.special
-from sklearn.exceptions import ConvergenceWarning
-from sklearn.neural_network import MLPRegressor
 
 from kvark_ros.core.residual.common import (
     BATCH_CHUNK,
@@ -186,6 +184,8 @@ class MLPResidualModel:
         300 epochs are ~1800 Adam steps and leave the step at q̇ = 0 blurred (RMSE ≈ the noise
         level in our check); batch_size 128 fixed that.
         """
+        from sklearn.exceptions import ConvergenceWarning       # fitting only: loading a model needs no sklearn
+        from sklearn.neural_network import MLPRegressor
         if activation not in _ACTIVATIONS:
             raise ValueError(
                 f"activation must be one of {sorted(_ACTIVATIONS)}, got {activation!r}")

@@ -7,7 +7,6 @@ from typing import Any, Mapping
 
 import numpy as np
 import scipy.linalg
-from sklearn.cluster import KMeans
 
 from kvark_ros.core.residual.common import check_samples, single_threaded
 from kvark_ros.core.residual.files import (
@@ -108,6 +107,7 @@ class SparseGPResidualModel(_KernelPredictor):
         random subset of min(T, n_hyper_subset) samples per joint, L-BFGS-B from the
         start ℓ = range/10 plus `n_restarts` random starts (each costs ~1 s at 1000 samples).
         """
+        from sklearn.cluster import KMeans          # fitting only: loading a model needs no sklearn
         if n_inducing < 1 or n_hyper_subset < 2:
             raise ValueError(f"n_inducing must be >= 1 and n_hyper_subset >= 2, got "
                              f"{n_inducing}, {n_hyper_subset}")

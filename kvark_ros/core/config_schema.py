@@ -157,6 +157,8 @@ KEYS: tuple[Key, ...] = (
     _key("filter.onset_window_time", "number", 0.02,
          "s back the contact onset may lie (time / t_s hypotheses, at least 2)", **_unit(0.001, 1.0)),
     _key("filter.measurement", "choice", "momentum", "form of the filter: p measured (momentum) or the paper's eq. 28 (difference)", choices=MEASUREMENTS),
+    _key("filter.kernel", "choice", "numpy", "implementation of the momentum-form K-VARK step: numpy (the reference) "
+         "or numba (one compiled kernel, equal to rounding; observers/kvark_kernel.py)", choices=("numpy", "numba")),
     _key("filter.stiction_velocity", "number", 0.05,
          "rad/s; below it a joint counts as sticking: its interval widens to the trained static friction band "
          "(docs/method.md §4.11; 0 = off)", runtime=True, **_unit(0.0, 10.0)),

@@ -10,6 +10,7 @@ import argparse
 import gc
 import json
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -36,6 +37,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "default: kvark")
     parser.add_argument("--duration", type=float, default=10.0, help="length of the timed stream, s (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the synthetic streams (default 0)")
+    parser.add_argument("--kernel", choices=("numpy", "numba"),
+                        help="implementation of the K-VARK step (filter.kernel; default: the config's)")
     parser.set_defaults(run=run)
 
 
@@ -47,6 +50,8 @@ def run(args: argparse.Namespace) -> int:
     if args.duration <= 0:
         raise SystemExit("kvark bench: --duration must be positive")
     config = load_config(args.config or default_config_path(args.robot))
+    if args.kernel:
+        config = replace(config, filter=replace(config.filter, kernel=args.kernel))
     robot = RobotModel.from_config(config)
     print(f"training a residual model on a 20 s synthetic free-motion stream of {config.robot} ...", flush=True)
     trained = train_synthetic(robot, config.robot, seed=args.seed,
@@ -68,8 +73,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"{name:<12} {row['steps']:>6} {row['p50_us']:>8.1f} {row['p99_us']:>8.1f} {row['max_us']:>8.1f} "
               f"{row['rmse_nm']:>9.4f}", flush=True)
     first = results[names[0]]
-    summary = {"robot": config.robot, "observer": names[0], "steps": first["steps"], "p50_us": first["p50_us"],
-               "p99_us": first["p99_us"], "observers": results}
+    summary = {"robot": config.robot, "observer": names[0], "kernel": config.filter.kernel, "steps": first["steps"],
+               "p50_us": first["p50_us"], "p99_us": first["p99_us"], "observers": results}
     print(json.dumps(summary))
     return 0
 

@@ -42,13 +42,20 @@ class ObserverError(ValueError):
 
 def _kvark(variant: str, residual: ResidualPredictor, tuning: FilterTuning, trained: "TrainedModel",
            settings: FilterSettings, name: str) -> Observer:
-    """The K-VARK filter in the configured measurement form (``filter.measurement``)."""
+    """The K-VARK filter in the configured measurement form (``filter.measurement``) and implementation
+    (``filter.kernel``: the numpy reference or the compiled kernel, which refuses what it does not cover)."""
+    form: type[KVARKMomentumFilter] = KVARKMomentumFilter
+    if settings.kernel == "numba":          # imported here: numba loads (~0.2 s) only where it is chosen
+        from kvark_ros.core.observers.kvark_kernel import KVARKKernelFilter, kernel_problem
+        if problem := kernel_problem(variant, settings):
+            raise ObserverError(f"observer '{name}': {problem}")
+        form = KVARKKernelFilter
     if settings.measurement == "difference":
         return KVARKFilter(variant, residual, tuning, settings, name=name, sample_period=trained.sample_period)
     if trained.momentum_noise is None:
         raise ObserverError("filter.measurement: momentum needs the model's momentum noise; retrain the model")
-    return KVARKMomentumFilter(variant, residual, tuning, trained.momentum_noise, settings, name=name,
-                               sample_period=trained.sample_period)
+    return form(variant, residual, tuning, trained.momentum_noise, settings, name=name,
+                sample_period=trained.sample_period)
 
 
 def make_observer(name: str, trained: "TrainedModel", settings: FilterSettings,

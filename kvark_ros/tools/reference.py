@@ -44,11 +44,18 @@ class Alignment:
     overlap: float
 
 
+def interpolate(stamp: np.ndarray, source_stamp: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Linear interpolation of ``values`` (T', k) at ``stamp``; NaN outside the source's span."""
+    out = np.empty((len(stamp), values.shape[1]))
+    for column in range(values.shape[1]):
+        out[:, column] = np.interp(stamp, source_stamp, values[:, column], left=np.nan, right=np.nan)
+    return out
+
+
 def _grid(inputs: EstimatorInputs, step: float) -> np.ndarray:
-    """q (T', n) of ``inputs`` on a uniform grid of ``step`` s from its first sample."""
+    """q (T', n) of ``inputs`` on a uniform grid of ``step`` s from its first sample (inside its span)."""
     elapsed = inputs.stamp - inputs.stamp[0]
-    grid = np.arange(0.0, elapsed[-1], step)
-    return np.column_stack([np.interp(grid, elapsed, inputs.q[:, j]) for j in range(inputs.q.shape[1])])
+    return interpolate(np.arange(0.0, elapsed[-1], step), elapsed, inputs.q)
 
 
 def _offset_free_misfit(a: np.ndarray, b: np.ndarray, min_overlap: int) -> tuple[np.ndarray, np.ndarray]:
@@ -92,9 +99,7 @@ def align_reference(run: EstimatorInputs, reference: EstimatorInputs, joint_name
             offset = 0.5 * (left - right) / curvature if curvature > 0.0 else 0.0
         shift = -(lags[best] + offset) * step
     elapsed = run.stamp - run.stamp[0]
-    reference_q = np.column_stack([np.interp(elapsed + shift, reference.stamp - reference.stamp[0],
-                                             reference.q[:, j], left=np.nan, right=np.nan)
-                                   for j in range(run.q.shape[1])])
+    reference_q = interpolate(elapsed + shift, reference.stamp - reference.stamp[0], reference.q)
     covered = np.isfinite(reference_q).all(axis=1)
     overlap = float(covered.mean())
     q_rms = (np.sqrt(np.mean((reference_q[covered] - run.q[covered]) ** 2, axis=0)) if covered.any()

@@ -32,7 +32,7 @@ from kvark_ros.core.observers import ResidualPredictor, make_observer
 from kvark_ros.core.robot_model import RobotModel, urdf_sha256
 from kvark_ros.io import BagError, BagWriter, RecordedRun, write_run_messages
 from kvark_ros.io.alignment import read_inputs
-from kvark_ros.tools.reference import align_reference
+from kvark_ros.tools.reference import align_reference, interpolate
 from kvark_ros.tools.metrics import mahalanobis_squared, observer_metrics
 
 OUTPUT_PREFIX = "/kvark"
@@ -81,14 +81,6 @@ class ObserverRun:
                 "condition_max": round(float(np.max(condition)), 3)}
 
 
-def _align(stamp: np.ndarray, source_stamp: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Linear interpolation of ``values`` (T', k) at ``stamp``; NaN outside the source's span."""
-    out = np.empty((len(stamp), values.shape[1]))
-    for column in range(values.shape[1]):
-        out[:, column] = np.interp(stamp, source_stamp, values[:, column], left=np.nan, right=np.nan)
-    return out
-
-
 GROUND_TRUTHS = ("auto", "zero", "topic", "ft", "reference")
 
 
@@ -134,12 +126,12 @@ def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, i
     wrench = None
     if run.wrench is not None:
         measured = np.hstack((run.wrench.force, run.wrench.torque))
-        at_sensor = _align(inputs.stamp, run.wrench.stamp, measured)
+        at_sensor = interpolate(inputs.stamp, run.wrench.stamp, measured)
         frame = run.wrench.frame_id
         wrench = np.array([robot.wrench_at_end_effector(q, frame, w, config.wrench.frame) if np.isfinite(w).all()
                            else np.full(6, np.nan) for q, w in zip(inputs.q, at_sensor)])
     if run.external_torque is not None and use_topic:
-        tau = _align(inputs.stamp, run.external_torque.stamp, run.external_torque.effort)
+        tau = interpolate(inputs.stamp, run.external_torque.stamp, run.external_torque.effort)
         if wrench is None:    # no wrist sensor: the true torque through the same pseudo-inverse (eq. 39)
             wrench = _wrench_of_torque(robot, config, inputs.q, tau)
         return GroundTruth("true external joint torque (/ground_truth/external_joint_torque)", tau, wrench)
@@ -150,7 +142,7 @@ def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, i
     if reference is not None and kind in ("auto", "reference"):
         alignment = align_reference(inputs, reference, config.joint_names)
         elapsed = inputs.stamp - inputs.stamp[0]
-        free = _align(elapsed + alignment.shift, reference.stamp - reference.stamp[0], reference.tau_m)
+        free = interpolate(elapsed + alignment.shift, reference.stamp - reference.stamp[0], reference.tau_m)
         tau = free - inputs.tau_m
         return GroundTruth(f"two-run difference against the reference bag (v2 eq. 40), aligned by cross-correlating "
                            f"q: shift {alignment.shift:+.3f} s, q RMS difference ≤ {alignment.q_rms.max():.4f} rad",

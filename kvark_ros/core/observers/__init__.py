@@ -54,8 +54,12 @@ def _kvark(variant: str, residual: ResidualPredictor, tuning: FilterTuning, trai
         return KVARKFilter(variant, residual, tuning, settings, name=name, sample_period=trained.sample_period)
     if trained.momentum_noise is None:
         raise ObserverError("filter.measurement: momentum needs the model's momentum noise; retrain the model")
-    return form(variant, residual, tuning, trained.momentum_noise, settings, name=name,
-                sample_period=trained.sample_period)
+    noise = trained.momentum_noise
+    if VARIANTS[variant].vb:
+        # Σ_d adapts at contact, so its free-motion prior need not track contacts itself (docs/method.md §4.12);
+        # the fixed-Σ_d variants keep the training's bandwidth, which must.
+        noise = noise.with_bandwidth(settings.prior_bandwidth, trained.sample_period)
+    return form(variant, residual, tuning, noise, settings, name=name, sample_period=trained.sample_period)
 
 
 def make_observer(name: str, trained: "TrainedModel", settings: FilterSettings,

@@ -191,6 +191,14 @@ class MomentumNoise:
         R = np.maximum(R, np.maximum(R_FLOOR_FRACTION * m0 / c0r, VARIANCE_FLOOR))
         return cls(R, torque_density_for_bandwidth(R, q_p, float(np.median(h)), bandwidth), q_p)
 
+    def with_bandwidth(self, bandwidth: float, step: float) -> "MomentumNoise":
+        """The same R and q_p with q_τ set for natural frequency ``bandwidth`` ω_b, rad/s, at step h, s (the rule of
+        ``from_training``): how the K-VARK filter's free-motion prior gets its own bandwidth (docs/method.md §4.12)."""
+        if not bandwidth > 0.0:
+            raise ValueError(f"bandwidth must be positive, got {bandwidth}")
+        return MomentumNoise(self.momentum_variance, torque_density_for_bandwidth(
+            self.momentum_variance, self.model_density, step, bandwidth), self.model_density)
+
     def to_dict(self) -> dict[str, list[float]]:
         """Plain lists, for the model's YAML file."""
         return {"momentum_variance": self.momentum_variance.tolist(),

@@ -1,11 +1,17 @@
 """Turn a recorded run into Estimator inputs: one (stamp, q, q̇, τ_m) per paired joint-state sample.
 
-The pairing is the live node's (``kvark_ros.core.pairing.StreamPairer``), fed the run's messages in
+The pairing is the live node's (``kvark_ros.core.pairing.StreamPairer``) for the run's messages in
 time order: joint states at their header stamps, commands at their log time, a command after the
 state it shares a time with. A command therefore answers the newest joint state stamped at or
 before it, and a state without one takes the newest earlier command no older than
 ``max_command_age``; the others are dropped and counted. ``input.torque_source: joint_states_effort``
 takes the joint states' effort instead, and a bag without commands falls back to it.
+
+In time order that rule decides every state at once (:func:`_paired_rows`): a repeated stamp is
+rejected (out of order), a state's own command is the first one at or after its stamp and before the
+next state's, and a state without one takes the last command before its stamp. Feeding the pairer
+message by message cost more than the rest of a replay; test/test_pairing_bulk.py checks the two
+agree. Stamps that are not finite (which bags cannot hold) still go through the pairer.
 """
 from __future__ import annotations
 
@@ -23,6 +29,7 @@ from kvark_ros.io import BagError, RecordedRun, TopicNames, read_run
 def _paired(run: RecordedRun, max_command_age: float) -> list[Sample]:
     """The run's states and commands through the streaming pairer, in time order (module docstring)."""
     states, commands = run.joint_states, run.commands
+    assert commands is not None
     pairer = StreamPairer(max_command_age, max_gap=np.inf)
     # Events in time order; at equal times the state (kind 0) before its command (kind 1).
     keys = np.concatenate([states.stamp, commands.stamp])
@@ -41,6 +48,27 @@ def _paired(run: RecordedRun, max_command_age: float) -> list[Sample]:
     return samples
 
 
+def _paired_rows(state_stamp: np.ndarray, command_stamp: np.ndarray,
+                 max_command_age: float) -> tuple[np.ndarray, np.ndarray]:
+    """(joint-state rows, command rows) of the paired samples in time order: the pairer's decisions for
+    finite stamps, taken all at once (module docstring)."""
+    by_state = np.argsort(state_stamp, kind="stable")
+    stamps = state_stamp[by_state]
+    accepted = np.ones(len(stamps), dtype=bool)
+    accepted[1:] = stamps[1:] > stamps[:-1]              # a stamp not after the previous one is out of order
+    states, stamps = by_state[accepted], stamps[accepted]
+    by_command = np.argsort(command_stamp, kind="stable")
+    commands = command_stamp[by_command]
+    after = np.searchsorted(commands, stamps, side="left")            # first command at or after each state
+    following = np.append(stamps[1:], np.inf)
+    own = after < len(commands)
+    own[own] = commands[after[own]] < following[own]                  # ... and before the next state
+    before = after - 1                                                # the newest command before the state
+    age = stamps - commands[np.maximum(before, 0)]
+    usable = own | ((before >= 0) & ~(age > max_command_age))
+    return states[usable], by_command[np.where(own, after, before)[usable]]
+
+
 def estimator_inputs(run: RecordedRun, max_command_age: float = 0.01, path: str = "bag",
                      torque_source: str = "effort_commands") -> EstimatorInputs:
     """Pair joint states with commands (module docstring); ``torque_source`` is ``input.torque_source``.
@@ -50,13 +78,19 @@ def estimator_inputs(run: RecordedRun, max_command_age: float = 0.01, path: str 
     falls back to the joint states' effort, and ``torque_source`` of the result says so.
     """
     states = run.joint_states
-    if torque_source != "joint_states_effort" and run.commands is not None and len(run.commands.stamp) > 0:
-        samples = _paired(run, max_command_age)
-        n = states.position.shape[1]
-        stamp = np.array([s.stamp for s in samples], dtype=np.float64)
-        q, qd, tau_m = (np.array([getattr(s, name) for s in samples], dtype=np.float64).reshape(-1, n)
-                        for name in ("q", "qd", "tau_m"))
-        return EstimatorInputs(stamp, q, qd, tau_m, "effort_commands", len(states.stamp) - len(samples),
+    commands = run.commands
+    if torque_source != "joint_states_effort" and commands is not None and len(commands.stamp) > 0:
+        if np.isfinite(states.stamp).all() and np.isfinite(commands.stamp).all():
+            rows, paired = _paired_rows(states.stamp, commands.stamp, max_command_age)
+            stamp, q, qd, tau_m = states.stamp[rows], states.position[rows], states.velocity[rows], \
+                commands.effort[paired]
+        else:
+            samples = _paired(run, max_command_age)
+            n = states.position.shape[1]
+            stamp = np.array([s.stamp for s in samples], dtype=np.float64)
+            q, qd, tau_m = (np.array([getattr(s, name) for s in samples], dtype=np.float64).reshape(-1, n)
+                            for name in ("q", "qd", "tau_m"))
+        return EstimatorInputs(stamp, q, qd, tau_m, "effort_commands", len(states.stamp) - len(stamp),
                                run.simulated)
     fresh = np.isfinite(states.effort).all(axis=1)
     if not fresh.any():

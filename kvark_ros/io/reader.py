@@ -2,11 +2,17 @@
 
 Messages may list joints in any order or carry extra joints; every failure a
 user can cause becomes a one-line :class:`BagError`.
+
+Messages are read undecoded, all at once (a bag that is one MCAP file through its
+message indexes, ``mcap_bulk``; any other through rosbags), then decoded a topic at
+a time in groups of messages that share a layout (``cdr_arrays``). The result, and
+the error raised for a bad bag, are what decoding them one by one with rosbags in
+read order gives (test/test_bulk_io.py).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Generator, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
@@ -14,8 +20,10 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 from rosbags.rosbag2 import Reader
+from rosbags.rosbag2.storage_mcap import McapReader
 
 from kvark_ros.core.pairing import JointColumns
+from kvark_ros.io.cdr_arrays import Layout, message_fields, windows
 from kvark_ros.io.common import (
     FLOAT64_ARRAY,
     JOINT_STATE,
@@ -25,6 +33,7 @@ from kvark_ros.io.common import (
     PathLike,
     _typestore,
 )
+from kvark_ros.io.mcap_bulk import RawMessages, indexed_messages
 from kvark_ros.io.runs import (
     BagError,
     CommandSeries,
@@ -38,6 +47,11 @@ from kvark_ros.io.runs import (
 )
 
 __all__ = ["read_run"]
+
+MAX_LAYOUTS = 8  # layouts per topic decoded in bulk; messages of further layouts are decoded one by one
+Index = npt.NDArray[np.intp]
+Int64s = npt.NDArray[np.int64]
+Fields = dict[str, npt.NDArray[Any]]
 
 
 def _resolve(path: PathLike) -> tuple[Path, Path]:
@@ -159,86 +173,100 @@ def _check_matched(path: Path, topic: str, columns: _Columns) -> None:
 
 
 class _Rows:
-    """Growable (T, width) float64 buffer; per row a header stamp and a log time (ns)."""
+    """Rows of one topic's messages in read order: numbers (m, width), header stamp and log time (ns), and
+    whether a message counts (one naming none of the run's joints does not)."""
 
-    def __init__(self, width: int, capacity: int) -> None:
-        self.width, self.size = width, 0
-        self.data = np.empty((max(capacity, 16), width))
-        self.ns = np.empty((max(capacity, 16), 2), dtype=np.int64)
+    def __init__(self, width: int, count: int) -> None:
+        self.data = np.empty((count, width))
+        self.ns = np.zeros((count, 2), dtype=np.int64)
+        self.kept = np.zeros(count, dtype=bool)
 
-    def append(self, ns: int, log_ns: int) -> FloatArray:
-        """Reserve a row stamped ``ns`` (logged at ``log_ns``) and return it to be filled."""
-        if self.size == self.ns.shape[0]:
-            self.data = np.concatenate([self.data, np.empty_like(self.data)])
-            self.ns = np.concatenate([self.ns, np.empty_like(self.ns)])
-        self.ns[self.size] = ns, log_ns
-        self.size += 1
-        row: FloatArray = self.data[self.size - 1]
-        return row
+    def fill(self, members: Index, stamp_ns: Int64s, log_ns: Int64s, data: FloatArray) -> None:
+        """Rows ``members`` (ascending; stamped ``stamp_ns``, logged at ``log_ns``) hold ``data`` and count."""
+        rows: Index | slice = members
+        if len(members) and members[-1] - members[0] == len(members) - 1:      # a range: copy without an index
+            rows = slice(int(members[0]), int(members[-1]) + 1)
+        self.data[rows], self.ns[rows, 0], self.ns[rows, 1] = data, stamp_ns, log_ns
+        self.kept[rows] = True
 
-    def sorted(self) -> tuple[FloatArray, FloatArray]:
-        """(stamps in s, rows), stably sorted by stamp.
+    def sorted(self) -> tuple[FloatArray, FloatArray] | None:
+        """(stamps in s, rows) of the rows that count, stably sorted by stamp; None if none counts.
 
         Header stamps that are all zero (a driver that never fills them) are
         replaced by the bag log time, so time steps stay meaningful.
         """
-        ns, data = self.ns[: self.size, 0], self.data[: self.size]
-        if not ns.any():
-            ns = self.ns[: self.size, 1]
-        order = np.argsort(ns, kind="stable")
-        return ns[order].astype(np.float64) / 1e9, data[order]
+        if not self.kept.any():
+            return None
+        ns, data = (self.ns, self.data) if self.kept.all() else (self.ns[self.kept], self.data[self.kept])
+        stamp = ns[:, 0] if ns[:, 0].any() else ns[:, 1]
+        if np.any(stamp[1:] < stamp[:-1]):
+            order = np.argsort(stamp, kind="stable")
+            stamp, data = stamp[order], data[order]
+        return stamp.astype(np.float64) / 1e9, data
+
+
+def _columns(values: FloatArray, idx: Index) -> FloatArray:
+    """``values[:, idx]``, without a copy when ``idx`` takes every column in order."""
+    return values if np.array_equal(idx, np.arange(values.shape[1])) else values[:, idx]
+
+
+def _stamp_ns(values: Fields) -> Int64s:
+    """Header stamps in integer nanoseconds."""
+    return values["sec"][:, 0].astype(np.int64) * _NS + values["nanosec"][:, 0]
 
 
 class _JointStates:
-    """Accumulates JointState messages into a JointStateSeries (position|velocity|effort)."""
+    """JointState messages → a JointStateSeries (position|velocity|effort)."""
 
-    def __init__(self, path: Path, topic: str, wanted: tuple[str, ...], capacity: int) -> None:
+    def __init__(self, path: Path, topic: str, wanted: tuple[str, ...], count: int) -> None:
         self.path, self.topic, self.n = path, topic, len(wanted)
         self.columns = _Columns(path, topic, wanted)
-        self.rows = _Rows(3 * self.n, capacity)
+        self.rows = _Rows(3 * self.n, count)
 
-    def add(self, msg: Any, log_ns: int) -> None:
+    def add(self, msg: Any, values: Fields, members: Index, log_ns: Int64s) -> None:
+        """Messages ``members`` share ``msg``'s layout (names, array lengths); ``values`` their numbers."""
         idx = self.columns.index(msg.name)
         if idx is None:
             return
-        stamp = msg.header.stamp
-        row = self.rows.append(stamp.sec * _NS + stamp.nanosec, log_ns)
-        count = len(msg.name)
-        for k, values in enumerate((msg.position, msg.velocity, msg.effort)):
-            block = row[k * self.n : (k + 1) * self.n]
-            if len(values) == count:
-                block[:] = values[idx]
-            elif len(values) == 0:
-                block[:] = np.nan
+        count, n = len(msg.name), self.n
+        data = np.empty((len(members), 3 * n))
+        for k, field_name in enumerate(("position", "velocity", "effort")):
+            found = values[field_name]
+            if found.shape[1] == count:
+                data[:, k * n:(k + 1) * n] = _columns(found, idx)
+            elif found.shape[1] == 0:
+                data[:, k * n:(k + 1) * n] = np.nan
             else:
-                field_name = ("position", "velocity", "effort")[k]
                 raise _error(
                     self.path,
                     f"malformed message on {self.topic}: "
-                    f"{len(values)} {field_name} values for {count} names",
+                    f"{found.shape[1]} {field_name} values for {count} names",
                     "re-record with a driver that fills JointState consistently",
                 )
+        self.rows.fill(members, _stamp_ns(values), log_ns, data)
 
     def result(self, names: tuple[str, ...]) -> JointStateSeries | None:
-        if self.rows.size == 0:
+        found = self.rows.sorted()
+        if found is None:
             _check_matched(self.path, self.topic, self.columns)
             return None
-        stamp, data = self.rows.sorted()
+        stamp, data = found
         n = self.n
         return JointStateSeries(stamp, names, data[:, :n], data[:, n : 2 * n], data[:, 2 * n :])
 
 
 class _Commands:
-    """Accumulates Float64MultiArray (or JointState effort) commands in run order."""
+    """Float64MultiArray (or JointState effort) commands in run order, stamped with their log time."""
 
-    def __init__(self, path: Path, topic: str, wanted: tuple[str, ...], capacity: int) -> None:
+    def __init__(self, path: Path, topic: str, wanted: tuple[str, ...], count: int) -> None:
         self.path, self.topic, self.wanted = path, topic, wanted
         self.columns = _Columns(path, topic, wanted)
-        self.rows = _Rows(len(wanted), capacity)
+        self.rows = _Rows(len(wanted), count)
 
-    def add(self, msg: Any, log_ns: int) -> None:
+    def add(self, msg: Any, values: Fields, members: Index, log_ns: Int64s) -> None:
+        """Messages ``members`` share ``msg``'s layout (labels or names, lengths); ``values`` their numbers."""
         if hasattr(msg, "layout"):
-            self._add_array(msg, log_ns)
+            self._add_array(msg, values["data"], members, log_ns)
             return
         idx = self.columns.index(msg.name)
         if idx is None:
@@ -250,46 +278,46 @@ class _Commands:
                 f"for {len(msg.name)} names",
                 "publish the commanded torque in the effort field",
             )
-        self.rows.append(log_ns, log_ns)[:] = msg.effort[idx]
+        self.rows.fill(members, log_ns, log_ns, _columns(values["effort"], idx))
 
-    def _add_array(self, msg: Any, log_ns: int) -> None:
-        data = msg.data
+    def _add_array(self, msg: Any, data: FloatArray, members: Index, log_ns: Int64s) -> None:
         dims = msg.layout.dim
         if (
             len(dims) == 1
             and dims[0].label
-            and len(labels := dims[0].label.split(",")) == len(data)
+            and len(labels := dims[0].label.split(",")) == data.shape[1]
         ):
             idx = self.columns.index(labels)
             if idx is not None:  # None: commands for other joints; checked in result()
-                self.rows.append(log_ns, log_ns)[:] = data[idx]
-        elif len(data) == len(self.wanted):
-            self.rows.append(log_ns, log_ns)[:] = data
+                self.rows.fill(members, log_ns, log_ns, _columns(data, idx))
+        elif data.shape[1] == len(self.wanted):
+            self.rows.fill(members, log_ns, log_ns, data)
         else:
             raise _error(
                 self.path,
-                f"{self.topic} has {len(data)} values but the run has "
+                f"{self.topic} has {data.shape[1]} values but the run has "
                 f"{len(self.wanted)} joints {list(self.wanted)}",
                 "pass joint_names in the effort controller's joint order",
             )
 
     def result(self) -> CommandSeries | None:
-        if self.rows.size == 0:
+        found = self.rows.sorted()
+        if found is None:
             _check_matched(self.path, self.topic, self.columns)
             return None
-        stamp, data = self.rows.sorted()
-        return CommandSeries(stamp, data)
+        return CommandSeries(*found)
 
 
 class _Wrenches:
-    """Accumulates WrenchStamped messages; all must share one frame_id."""
+    """WrenchStamped messages; all must share one frame_id."""
 
-    def __init__(self, path: Path, topic: str, capacity: int) -> None:
+    def __init__(self, path: Path, topic: str, count: int) -> None:
         self.path, self.topic = path, topic
         self.frame_id: str | None = None
-        self.rows = _Rows(6, capacity)
+        self.rows = _Rows(6, count)
 
-    def add(self, msg: Any, log_ns: int) -> None:
+    def add(self, msg: Any, values: Fields, members: Index, log_ns: Int64s) -> None:
+        """Messages ``members`` share ``msg``'s layout (frame_id); ``values`` their numbers."""
         frame = msg.header.frame_id
         if self.frame_id is None:
             self.frame_id = frame
@@ -299,16 +327,25 @@ class _Wrenches:
                 f"{self.topic} mixes frames {self.frame_id!r} and {frame!r}",
                 "split the topic or re-record in one frame",
             )
-        stamp = msg.header.stamp
-        row = self.rows.append(stamp.sec * _NS + stamp.nanosec, log_ns)
-        f, t = msg.wrench.force, msg.wrench.torque
-        row[:] = (f.x, f.y, f.z, t.x, t.y, t.z)
+        self.rows.fill(members, _stamp_ns(values), log_ns, values["wrench"])
 
     def result(self) -> WrenchSeries | None:
-        if self.rows.size == 0:
+        found = self.rows.sorted()
+        if found is None:
             return None
-        stamp, data = self.rows.sorted()
+        stamp, data = found
         return WrenchSeries(stamp, self.frame_id or "", data[:, :3], data[:, 3:])
+
+
+_Handler = _JointStates | _Commands | _Wrenches
+
+
+class _Failure(Exception):
+    """A BagError met at message ``rank`` of the read order (the earliest one is raised)."""
+
+    def __init__(self, rank: int, error: BagError) -> None:
+        super().__init__(str(error))
+        self.rank, self.error = rank, error
 
 
 def _check_type(path: Path, topic: str, found: set[str], allowed: set[str]) -> None:
@@ -321,21 +358,119 @@ def _check_type(path: Path, topic: str, found: set[str], allowed: set[str]) -> N
         )
 
 
-def _stream(
-    path: Path, reader: Reader, conns: list[Any]
-) -> Generator[tuple[Any, int, Any], None, None]:
-    """Yield (connection, log time ns, decoded message); decoding errors become BagError."""
+def _indexed(reader: Reader, conns: list[Any]) -> tuple[RawMessages, dict[int, Any]] | None:
+    """``conns``' messages read in bulk (``mcap_bulk.indexed_messages``) from a bag that is one MCAP file
+    without per-message compression, and channel id → connection; None for any other bag."""
+    storage = reader.storage
+    if isinstance(storage, McapReader):
+        mcap, by_id = storage, {conn.id: conn for conn in conns}
+    else:
+        storages = getattr(storage, "storages", [])
+        if len(storages) != 1 or not isinstance(storages[0], McapReader) or reader.compression_mode == "message":
+            return None
+        mcap = storages[0]
+        # the storage's channels that rosbags' directory reader maps onto ``conns``
+        by_id = {}
+        for channel in mcap.connections:
+            same = [conn for conn in conns if conn.topic == channel.topic and conn.msgtype == channel.msgtype
+                    and conn.ext == channel.ext and (not channel.digest or not conn.digest
+                                                     or conn.digest == channel.digest)]
+            if same:
+                by_id[channel.id] = same[0]
+    if not mcap.chunks:
+        return None
+    raw = indexed_messages(Path(mcap.path), mcap.chunks, by_id)
+    return None if raw is None else (raw, by_id)
+
+
+def _raw_messages(path: Path, reader: Reader, conns: list[Any]) -> tuple[RawMessages, dict[int, Any], list[_Failure]]:
+    """Every message of ``conns`` undecoded, in read order; channel id → connection; and a read error met
+    after the messages returned (as a failure ranked after them)."""
+    found = _indexed(reader, conns)
+    if found is not None:
+        return (*found, [])
+    parts, log_ns, ids = [], [], []
+    failures = []
+    try:
+        for conn, stamp, data in reader.messages(connections=conns):
+            parts.append(data)
+            log_ns.append(stamp)
+            ids.append(conn.id)
+    except Exception as exc:  # ReaderError, sqlite3 errors, decompression errors
+        failures.append(_Failure(len(parts), _corrupt(path, exc)))
+    size = np.array([len(part) for part in parts], dtype=np.int64)
+    raw = RawMessages.join(parts, np.cumsum(size) - size, size, np.array(log_ns, dtype=np.int64),
+                           np.array(ids, dtype=np.int64))
+    return raw, {conn.id: conn for conn in conns}, failures
+
+
+def _by_topic(raw: RawMessages, by_id: dict[int, Any], names: set[str]
+              ) -> tuple[dict[str, Index], dict[str, Index], dict[str, list[str]]]:
+    """Per topic: its messages (indices into ``raw``, read order), the index of each one's message type in
+    the topic's list of types, and that list."""
+    rows, kinds, msgtypes = {}, {}, {}
+    for topic in names:
+        ids = {cid: conn.msgtype for cid, conn in by_id.items() if conn.topic == topic}
+        rows[topic] = np.flatnonzero(np.isin(raw.channel, list(ids)))
+        msgtypes[topic] = sorted(set(ids.values()))
+        channel_ids = np.array(sorted(ids), dtype=np.int64)
+        type_of = np.array([msgtypes[topic].index(ids[cid]) for cid in channel_ids], dtype=np.intp)
+        kinds[topic] = type_of[np.searchsorted(channel_ids, raw.channel[rows[topic]])]
+    return rows, kinds, msgtypes
+
+
+def _feed(path: Path, raw: RawMessages, rows: Index, kinds: Index, msgtypes: list[str], handler: _Handler) -> None:
+    """Decode one topic's messages ``rows`` (read order; type ``msgtypes[kinds[k]]``) and hand them to ``handler``
+    in groups of one layout (``cdr_arrays``), taken in the order of their first messages: rosbags decodes
+    each group's first message, the rest of the group is decoded in bulk. The first ``MAX_LAYOUTS`` layouts
+    are grouped; messages of further ones are decoded one by one. Errors are raised as ``_Failure``."""
     store = _typestore()
-    it = iter(reader.messages(connections=conns))
-    while True:
+    size, log_ns = raw.size[rows], raw.log_ns[rows]
+
+    def decode(k: int) -> tuple[bytes, str, Any]:
+        data, msgtype = raw.message(int(rows[k])), msgtypes[kinds[k]]
         try:
-            conn, log_ns, raw = next(it)
-            msg = store.deserialize_cdr(raw, conn.msgtype)
-        except StopIteration:
+            return data, msgtype, store.deserialize_cdr(data, msgtype)
+        except Exception as exc:  # SerdeError
+            raise _Failure(int(rows[k]), _corrupt(path, exc)) from exc
+
+    def hand(k: int, msg: Any, values: Fields, members: Index) -> None:
+        try:
+            handler.add(msg, values, members, log_ns[members])
+        except BagError as exc:
+            raise _Failure(int(rows[k]), exc) from exc
+
+    pending = np.ones(len(rows), dtype=bool)
+    for _ in range(MAX_LAYOUTS):
+        rest = np.flatnonzero(pending)
+        if not rest.size:
             return
-        except Exception as exc:  # ReaderError, SerdeError, sqlite3 errors, decompression errors
-            raise _corrupt(path, exc) from exc
-        yield conn, log_ns, msg
+        first = int(rest[0])
+        data, msgtype, msg = decode(first)
+        layout = Layout.read(data, msgtype, msg)
+        members, values = rest[:1], message_fields(msg, msgtype)
+        if layout is not None:
+            same = rest[(size[rest] == layout.size) & (kinds[rest] == kinds[first])]
+            block = windows(raw.buffer, raw.start[rows[same]], layout.width)
+            match = layout.matches(block)
+            members, values = same[match], layout.decode(block[match])
+        hand(first, msg, values, members)
+        pending[members] = False
+    for k in np.flatnonzero(pending):
+        data, msgtype, msg = decode(int(k))
+        hand(int(k), msg, message_fields(msg, msgtype), np.array([k]))
+
+
+def _first_names(path: Path, raw: RawMessages, rows: Index, failures: list[_Failure], topic: str) -> tuple[str, ...]:
+    """The joint names of the first joint state; a read error met before it, or none, is a BagError."""
+    if not len(rows) or any(failure.rank < rows[0] for failure in failures):
+        if failures:
+            raise min(failures, key=lambda failure: failure.rank).error
+        raise _error(path, f"topic {topic} has no messages", "record joint states in the bag")
+    try:
+        return tuple(_typestore().deserialize_cdr(raw.message(int(rows[0])), JOINT_STATE).name)
+    except Exception as exc:  # SerdeError
+        raise _corrupt(path, exc) from exc
 
 
 def read_run(
@@ -382,42 +517,36 @@ def read_run(
         for conn in reader.connections:
             by_topic.setdefault(conn.topic, []).append(conn)
 
-        def count(topic: str) -> int:
-            return sum(c.msgcount for c in by_topic.get(topic, []))
+        conns = [c for topic in (topics.joint_states, *optional) if topic in by_topic for c in by_topic[topic]]
+        raw, by_id, failures = _raw_messages(given, reader, conns)
 
-        js_conns = by_topic[topics.joint_states]
-        if wanted is None:
-            peek = _stream(given, reader, js_conns)
-            first = next(peek, None)
-            peek.close()
-            if first is None:
-                raise _error(
-                    given,
-                    f"topic {topics.joint_states} has no messages",
-                    "record joint states in the bag",
-                )
-            wanted = tuple(first[2].name)
+    rows, kinds, msgtypes = _by_topic(raw, by_id, {conn.topic for conn in conns})
+    if wanted is None:  # the first joint state names the joints
+        wanted = _first_names(given, raw, rows[topics.joint_states], failures, topics.joint_states)
 
-        handlers: dict[str, _JointStates | _Commands | _Wrenches] = {
-            topics.joint_states: _JointStates(
-                given, topics.joint_states, wanted, count(topics.joint_states)
-            ),
-        }
-        if topics.effort_commands in by_topic:
-            handlers[topics.effort_commands] = _Commands(
-                given, topics.effort_commands, wanted, count(topics.effort_commands)
-            )
-        if topics.wrench in by_topic:
-            handlers[topics.wrench] = _Wrenches(given, topics.wrench, count(topics.wrench))
-        if topics.external_torque in by_topic:
-            handlers[topics.external_torque] = _JointStates(
-                given, topics.external_torque, wanted, count(topics.external_torque)
-            )
+    def count(topic: str) -> int:
+        return len(rows[topic])
 
-        conns = [c for topic in handlers for c in by_topic[topic]]
-        dispatch: dict[str, Callable[[Any, int], None]] = {t: h.add for t, h in handlers.items()}
-        for conn, log_ns, msg in _stream(given, reader, conns):
-            dispatch[conn.topic](msg, log_ns)
+    handlers: dict[str, _Handler] = {
+        topics.joint_states: _JointStates(given, topics.joint_states, wanted, count(topics.joint_states)),
+    }
+    if topics.effort_commands in rows:
+        handlers[topics.effort_commands] = _Commands(
+            given, topics.effort_commands, wanted, count(topics.effort_commands)
+        )
+    if topics.wrench in rows:
+        handlers[topics.wrench] = _Wrenches(given, topics.wrench, count(topics.wrench))
+    if topics.external_torque in rows:
+        handlers[topics.external_torque] = _JointStates(
+            given, topics.external_torque, wanted, count(topics.external_torque)
+        )
+    for topic, handler in handlers.items():
+        try:
+            _feed(given, raw, rows[topic], kinds[topic], msgtypes[topic], handler)
+        except _Failure as failure:
+            failures.append(failure)
+    if failures:  # the error a message-by-message read would have met first
+        raise min(failures, key=lambda failure: failure.rank).error
 
     js_handler = handlers[topics.joint_states]
     assert isinstance(js_handler, _JointStates)

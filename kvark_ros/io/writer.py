@@ -3,6 +3,10 @@
 Stamps are stored in a bag as integer nanoseconds, so a stamp ``t`` survives a
 write/read round trip bit for bit when ``t == round(t * 1e9) / 1e9`` (stamps
 built as ``ns / 1e9``); others are rounded to the nearest nanosecond.
+
+Messages are serialised a topic at a time (:class:`Messages`): rosbags serialises
+the first, and the others are copies of it with their own numbers
+(``cdr_arrays.Layout``); MCAP bags are written in bulk by ``mcap_bulk.McapStorage``.
 """
 
 from __future__ import annotations
@@ -12,12 +16,14 @@ import shutil
 import tempfile
 from collections.abc import Sequence
 from contextlib import suppress
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any, Literal
 
 import numpy as np
 import numpy.typing as npt
+from rosbags.interfaces import Connection
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 from kvark_ros.io.common import (
@@ -30,20 +36,23 @@ from kvark_ros.io.common import (
     PathLike,
     _typestore,
 )
+from kvark_ros.io.cdr_arrays import Layout
+from kvark_ros.io.mcap_bulk import McapStorage
 from kvark_ros.io.runs import SOURCE_KEY, RecordedRun, TopicNames, _error
 
-__all__ = ["BagWriter", "write_run", "write_run_messages"]
+__all__ = ["BagWriter", "Messages", "bool_messages", "float64_array_messages", "joint_state_messages",
+           "wrench_messages", "write_run", "write_run_messages"]
+
+Index = npt.NDArray[np.intp]
 
 _STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
+
+
+class _Writer(Writer):
+    """rosbags' bag writer with MCAP written in bulk (``mcap_bulk.McapStorage``)."""
+
+    STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: McapStorage}
 _BAG_VERSION: Literal[9] = 9  # rosbag2 metadata version written by Jazzy
-
-
-def _stamp_ns(stamp: float) -> int:
-    """Seconds → integer nanoseconds (nearest); rejects negative or non-finite stamps."""
-    value = float(stamp)
-    if not np.isfinite(value) or value < 0.0:
-        raise ValueError(f"stamp must be finite and >= 0 s, got {stamp!r}")
-    return round(value * 1e9)
 
 
 def _float_vector(value: Any, size: int | None, what: str) -> FloatArray:
@@ -108,7 +117,7 @@ class BagWriter:
             ) from exc
         # The bag directory inside tmpdir has the final name, so the storage
         # file is '<name>.mcap' / '<name>.db3' as ros2 bag tools expect.
-        writer = Writer(tmpdir / self.path.name, version=_BAG_VERSION, storage_plugin=self._plugin)
+        writer = _Writer(tmpdir / self.path.name, version=_BAG_VERSION, storage_plugin=self._plugin)
         if self.source:
             writer.set_custom_data(SOURCE_KEY, self.source)
         try:
@@ -192,21 +201,48 @@ class BagWriter:
             raise RuntimeError("BagWriter is not open; use it as a context manager")
         return self._writer
 
-    def _write(self, topic: str, msgtype: str, log_ns: int, msg: Any) -> None:
-        writer = self._require_open()
+    def _connection(self, topic: str, msgtype: str) -> Connection:
+        """The connection of ``topic`` (added at first use); a topic carries one message type."""
         entry = self._connections.get(topic)
         if entry is None:
-            conn = writer.add_connection(topic, msgtype, typestore=_typestore())
+            conn = self._require_open().add_connection(topic, msgtype, typestore=_typestore())
             entry = self._connections[topic] = (msgtype, conn)
         elif entry[0] != msgtype:
             raise ValueError(f"topic {topic} already carries {entry[0]}, cannot write {msgtype}")
-        writer.write(entry[1], log_ns, _typestore().serialize_cdr(msg, msgtype))
+        return entry[1]
 
-    @staticmethod
-    def _header(stamp_ns: int, frame_id: str = "") -> Any:
-        types = _typestore().types
-        time = types["builtin_interfaces/msg/Time"](sec=stamp_ns // _NS, nanosec=stamp_ns % _NS)
-        return types["std_msgs/msg/Header"](stamp=time, frame_id=frame_id)
+    def write_messages(self, blocks: Sequence[Messages], which: Index, row: Index) -> None:
+        """Write message ``row[k]`` of ``blocks[which[k]]`` for every k, in that order (each at its log time).
+
+        A topic's connection is added just before its first message, as writing one by one would."""
+        self._require_open()
+        offsets = np.cumsum([0] + [len(block.log_ns) for block in blocks])[:-1]
+        log_ns = np.concatenate([block.log_ns for block in blocks])[offsets[which] + row]
+        ids = np.zeros(len(blocks), dtype=np.int64)
+        starts = sorted(int(np.argmax(mask)) for mask in (which == k for k in range(len(blocks))) if mask.any())
+        for start, end in zip(starts, [*starts[1:], len(which)]):
+            block = blocks[which[start]]
+            ids[which[start]] = self._connection(block.topic, block.msgtype).id
+            self._write_part(blocks, ids, which[start:end], row[start:end], log_ns[start:end])
+
+    def _write_part(self, blocks: Sequence[Messages], ids: npt.NDArray[np.int64], which: Index, row: Index,
+                    log_ns: npt.NDArray[np.int64]) -> None:
+        """``write_messages`` once the connections are added (``ids``: connection id per block)."""
+        writer = self._require_open()
+        if not isinstance(writer.storage, McapStorage):        # sqlite3: rosbags writes one at a time
+            conns = {conn.id: conn for conn in writer.connections}
+            for block, k, ns in zip(which.tolist(), row.tolist(), log_ns.tolist()):
+                writer.write(conns[ids[block]], ns, blocks[block].data[k].tobytes())
+            return
+        writer.storage.write_many(ids[which], log_ns, [block.data for block in blocks], which, row)
+        for block, count in zip(*np.unique(which, return_counts=True)):     # what rosbags' Writer.write counts
+            writer.counts[int(ids[block])] += int(count)
+        writer.min_timestamp = min(writer.min_timestamp, int(log_ns.min()))
+        writer.max_timestamp = max(writer.max_timestamp, int(log_ns.max()))
+
+    def write_block(self, block: Messages) -> None:
+        """Write ``block``'s messages in row order."""
+        self.write_messages([block], np.zeros(len(block.log_ns), dtype=np.intp), np.arange(len(block.log_ns)))
 
     def joint_state(
         self,
@@ -218,28 +254,15 @@ class BagWriter:
         effort: Any = None,
     ) -> None:
         """Write a sensor_msgs/JointState; a field left None is written empty (ROS convention)."""
-        ns = _stamp_ns(stamp)
-        names = [str(n) for n in names]
-        fields = {
-            key: np.empty(0) if val is None else _float_vector(val, len(names), f"{topic} {key}")
-            for key, val in (("position", position), ("velocity", velocity), ("effort", effort))
-        }
-        msg = _typestore().types[JOINT_STATE](header=self._header(ns), name=names, **fields)
-        self._write(topic, JOINT_STATE, ns, msg)
+        fields = [None if value is None else _float_vector(value, len(names), f"{topic} {key}")[None]
+                  for key, value in (("position", position), ("velocity", velocity), ("effort", effort))]
+        self.write_block(joint_state_messages(topic, np.array([stamp], dtype=float), names, *fields))
 
     def wrench(self, topic: str, stamp: float, frame_id: str, force: Any, torque: Any) -> None:
         """Write a geometry_msgs/WrenchStamped: force (3,) N, torque (3,) N·m in frame_id."""
-        ns = _stamp_ns(stamp)
         f = _float_vector(force, 3, f"{topic} force")
         t = _float_vector(torque, 3, f"{topic} torque")
-        types = _typestore().types
-        vec = types["geometry_msgs/msg/Vector3"]
-        wrench = types["geometry_msgs/msg/Wrench"](
-            force=vec(x=float(f[0]), y=float(f[1]), z=float(f[2])),
-            torque=vec(x=float(t[0]), y=float(t[1]), z=float(t[2])),
-        )
-        msg = types[WRENCH_STAMPED](header=self._header(ns, str(frame_id)), wrench=wrench)
-        self._write(topic, WRENCH_STAMPED, ns, msg)
+        self.write_block(wrench_messages(topic, np.array([stamp], dtype=float), frame_id, f[None], t[None]))
 
     def float64_array(
         self, topic: str, stamp: float, data: Any, names: Sequence[str] | None = None
@@ -249,24 +272,104 @@ class BagWriter:
         ``names`` (optional) labels the values: one layout dimension whose label is
         the comma-joined names, so readers can match joints by name.
         """
-        ns = _stamp_ns(stamp)
         values = _float_vector(data, None if names is None else len(names), f"{topic} data")
-        types = _typestore().types
-        dims = []
-        if names is not None:
-            label = ",".join(str(n) for n in names)
-            dims = [
-                types["std_msgs/msg/MultiArrayDimension"](
-                    label=label, size=len(values), stride=len(values)
-                )
-            ]
-        layout = types["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
-        self._write(topic, FLOAT64_ARRAY, ns, types[FLOAT64_ARRAY](layout=layout, data=values))
+        self.write_block(float64_array_messages(topic, np.array([stamp], dtype=float), values[None], names))
 
     def boolean(self, topic: str, stamp: float, value: bool) -> None:
         """Write a std_msgs/Bool at log time ``stamp`` (e.g. the contact flag)."""
-        ns = _stamp_ns(stamp)
-        self._write(topic, BOOL, ns, _typestore().types[BOOL](data=bool(value)))
+        self.write_block(bool_messages(topic, np.array([stamp], dtype=float), np.array([bool(value)])))
+
+
+@dataclass(frozen=True)
+class Messages:
+    """Messages of one topic and type, serialised: row k of ``data`` (m, size) is logged at ``log_ns[k]``."""
+
+    topic: str
+    msgtype: str
+    log_ns: npt.NDArray[np.int64]
+    data: npt.NDArray[np.uint8]
+
+
+def _messages(topic: str, msgtype: str, log_ns: npt.NDArray[np.int64], first: Any,
+              values: dict[str, npt.ArrayLike]) -> Messages:
+    """Messages like ``first`` (the first, as a rosbags message) with the numbers ``values`` (name → rows)."""
+    if not len(log_ns):
+        return Messages(topic, msgtype, log_ns, np.zeros((0, 0), dtype=np.uint8))
+    raw = bytes(_typestore().serialize_cdr(first, msgtype))
+    layout = Layout.read(raw, msgtype, first)
+    assert layout is not None, f"{msgtype}: a message rosbags serialised must have a layout"
+    return Messages(topic, msgtype, log_ns, layout.encode(values, len(log_ns)))
+
+
+def _header(stamp_ns: npt.NDArray[np.int64], frame_id: str = "") -> tuple[Any, dict[str, npt.ArrayLike]]:
+    """The first row's std_msgs/Header, and every row's stamp fields."""
+    types = _typestore().types
+    sec, nanosec = np.divmod(stamp_ns, _NS)
+    time = types["builtin_interfaces/msg/Time"](sec=int(sec[0]), nanosec=int(nanosec[0]))
+    header = types["std_msgs/msg/Header"](stamp=time, frame_id=frame_id)
+    return header, {"sec": sec[:, None], "nanosec": nanosec[:, None]}
+
+
+def _rows(value: Any, rows: int, width: int | None, what: str) -> FloatArray:
+    """Coerce to a (rows, width) float64 array (width None: any)."""
+    arr = np.ascontiguousarray(value, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[0] != rows or (width is not None and arr.shape[1] != width):
+        raise ValueError(f"{what} has shape {arr.shape}, expected ({rows}, {width if width is not None else 'n'})")
+    return arr
+
+
+def joint_state_messages(topic: str, stamp: FloatArray, names: Sequence[str], position: Any = None,
+                         velocity: Any = None, effort: Any = None) -> Messages:
+    """sensor_msgs/JointState at ``stamp`` (s): each given field (rows, len(names)); None is written empty."""
+    ns = _stamps_ns(stamp)
+    names = [str(n) for n in names]
+    fields = {key: np.empty((len(ns), 0)) if value is None else _rows(value, len(ns), len(names), f"{topic} {key}")
+              for key, value in (("position", position), ("velocity", velocity), ("effort", effort))}
+    if not len(ns):
+        return _messages(topic, JOINT_STATE, ns, None, {})
+    header, values = _header(ns)
+    first = _typestore().types[JOINT_STATE](header=header, name=names,
+                                             **{key: value[0] for key, value in fields.items()})
+    return _messages(topic, JOINT_STATE, ns, first, {**values, **fields})
+
+
+def wrench_messages(topic: str, stamp: FloatArray, frame_id: str, force: Any, torque: Any) -> Messages:
+    """geometry_msgs/WrenchStamped at ``stamp`` (s): force (rows, 3) N, torque (rows, 3) N·m in ``frame_id``."""
+    ns = _stamps_ns(stamp)
+    wrench = np.hstack((_rows(force, len(ns), 3, f"{topic} force"), _rows(torque, len(ns), 3, f"{topic} torque")))
+    if not len(ns):
+        return _messages(topic, WRENCH_STAMPED, ns, None, {})
+    types = _typestore().types
+    header, values = _header(ns, str(frame_id))
+    vec = types["geometry_msgs/msg/Vector3"]
+    x, y, z, tx, ty, tz = map(float, wrench[0])
+    first = types[WRENCH_STAMPED](header=header, wrench=types["geometry_msgs/msg/Wrench"](
+        force=vec(x=x, y=y, z=z), torque=vec(x=tx, y=ty, z=tz)))
+    return _messages(topic, WRENCH_STAMPED, ns, first, {**values, "wrench": wrench})
+
+
+def float64_array_messages(topic: str, stamp: FloatArray, data: Any, names: Sequence[str] | None = None) -> Messages:
+    """std_msgs/Float64MultiArray logged at ``stamp`` (s): data (rows, k), labelled with ``names`` if given
+    (one layout dimension whose label is the comma-joined names)."""
+    ns = _stamps_ns(stamp)
+    values = _rows(data, len(ns), None if names is None else len(names), f"{topic} data")
+    if not len(ns):
+        return _messages(topic, FLOAT64_ARRAY, ns, None, {})
+    types = _typestore().types
+    width = values.shape[1]
+    dims = [] if names is None else [types["std_msgs/msg/MultiArrayDimension"](
+        label=",".join(str(n) for n in names), size=width, stride=width)]
+    layout = types["std_msgs/msg/MultiArrayLayout"](dim=dims, data_offset=0)
+    return _messages(topic, FLOAT64_ARRAY, ns, types[FLOAT64_ARRAY](layout=layout, data=values[0]), {"data": values})
+
+
+def bool_messages(topic: str, stamp: FloatArray, value: Any) -> Messages:
+    """std_msgs/Bool logged at ``stamp`` (s), one per value (e.g. the contact flag)."""
+    ns = _stamps_ns(stamp)
+    flags = np.asarray(value, dtype=bool).reshape(len(ns), 1)
+    if not len(ns):
+        return _messages(topic, BOOL, ns, None, {})
+    return _messages(topic, BOOL, ns, _typestore().types[BOOL](data=bool(flags[0, 0])), {"data": flags})
 
 
 def write_run(
@@ -287,37 +390,30 @@ def write_run(
 
 
 def write_run_messages(bag: BagWriter, run: RecordedRun, topics: TopicNames = TopicNames()) -> None:
-    """Write ``run``'s messages into an open ``bag``, interleaved in log-time order."""
+    """Write ``run``'s messages into an open ``bag``, interleaved in log-time order (at equal times joint
+    states, commands, wrenches, true torques, each in row order)."""
     names = run.joint_names
-    events: list[tuple[npt.NDArray[np.int64], int]] = []
-    series: list[Any] = [run.joint_states, run.commands, run.wrench, run.external_torque]
-    for kind, item in enumerate(series):
-        if item is not None:
-            events.append((_stamps_ns(item.stamp), kind))
-    log_ns = np.concatenate([ns for ns, _ in events])
-    kinds = np.concatenate([np.full(ns.shape, k) for ns, k in events])
-    rows = np.concatenate([np.arange(ns.shape[0]) for ns, _ in events])
-    order = np.lexsort((rows, kinds, log_ns))
     js, cmd, wr, ext = run.joint_states, run.commands, run.wrench, run.external_torque
-    for i in order:
-        kind, row = int(kinds[i]), int(rows[i])
-        stamp = float(series[kind].stamp[row])
-        if kind == 0:
-            bag.joint_state(topics.joint_states, stamp, names, js.position[row], js.velocity[row], js.effort[row])
-        elif kind == 1:
-            assert cmd is not None
-            bag.float64_array(topics.effort_commands, stamp, cmd.effort[row], names=names)
-        elif kind == 2:
-            assert wr is not None
-            bag.wrench(topics.wrench, stamp, wr.frame_id, wr.force[row], wr.torque[row])
-        else:
-            assert ext is not None
-            bag.joint_state(topics.external_torque, stamp, names, ext.position[row], ext.velocity[row],
-                            ext.effort[row])
+    blocks = [joint_state_messages(topics.joint_states, js.stamp, names, js.position, js.velocity, js.effort)]
+    if cmd is not None:
+        blocks.append(float64_array_messages(topics.effort_commands, cmd.stamp, cmd.effort, names))
+    if wr is not None:
+        blocks.append(wrench_messages(topics.wrench, wr.stamp, wr.frame_id, wr.force, wr.torque))
+    if ext is not None:
+        blocks.append(joint_state_messages(topics.external_torque, ext.stamp, names, ext.position, ext.velocity,
+                                           ext.effort))
+    which = np.concatenate([np.full(len(block.log_ns), k, dtype=np.intp) for k, block in enumerate(blocks)])
+    rows = np.concatenate([np.arange(len(block.log_ns)) for block in blocks])
+    order = np.lexsort((rows, which, np.concatenate([block.log_ns for block in blocks])))
+    bag.write_messages(blocks, which[order], rows[order])
 
 
-def _stamps_ns(stamp: FloatArray) -> npt.NDArray[np.int64]:
-    """Seconds → integer nanoseconds, vectorised; rejects negative or non-finite stamps."""
-    if stamp.size and (not np.all(np.isfinite(stamp)) or stamp.min() < 0.0):
-        raise ValueError("stamps must be finite and >= 0 s")
-    return np.rint(stamp * 1e9).astype(np.int64)
+def _stamps_ns(stamp: Any) -> npt.NDArray[np.int64]:
+    """Seconds → integer nanoseconds (nearest); rejects stamps that are not finite, negative, or past the
+    int32 seconds of a ROS time."""
+    stamp = np.asarray(stamp, dtype=np.float64).reshape(-1)
+    bad = stamp[~(np.isfinite(stamp) & (stamp >= 0.0) & (stamp < 2.0**31))]
+    ns = np.rint(stamp * 1e9).astype(np.int64) if not bad.size else np.zeros(0, dtype=np.int64)
+    if bad.size or (ns.size and ns.max() >= 2**31 * _NS):
+        raise ValueError(f"stamps must be finite and in [0, 2**31) s, got {bad[0] if bad.size else stamp.max()!r}")
+    return ns

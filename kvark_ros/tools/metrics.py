@@ -78,6 +78,18 @@ def mahalanobis_squared(error: np.ndarray, covariance: np.ndarray) -> float:
         return float("nan")
 
 
+def mahalanobis_rows(errors: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """``mahalanobis_squared`` of many errors (T, n) under their covariances (T, n, n) in one batched solve, (T,)."""
+    out = np.full(len(errors), np.nan)
+    rows = np.flatnonzero(np.isfinite(errors).all(axis=1) & np.isfinite(covariances).all(axis=(1, 2)))
+    try:
+        solved = np.linalg.solve(covariances[rows], errors[rows][..., None])[..., 0]
+        out[rows] = np.einsum("ti,ti->t", errors[rows], solved)
+    except np.linalg.LinAlgError:       # a singular P among them: one at a time, NaN for those
+        out[rows] = [mahalanobis_squared(e, c) for e, c in zip(errors[rows], covariances[rows])]
+    return out
+
+
 def calibration_metrics(error: np.ndarray, std: np.ndarray, mahalanobis: np.ndarray | None) -> dict[str, Any]:
     """How honest the reported uncertainty is, from errors e = τ̂ − τ_true (T, n) N·m, their reported σ (T, n) and
     eᵀP⁻¹e (T,) under the full covariance (None: not kept, the vector figures are None).

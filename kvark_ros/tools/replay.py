@@ -30,10 +30,11 @@ from kvark_ros.core.model_store import TrainedModel, load_model
 from kvark_ros.core.model_checks import measured_rate, model_warnings
 from kvark_ros.core.observers import ResidualPredictor, make_observer
 from kvark_ros.core.robot_model import RobotModel, urdf_sha256
-from kvark_ros.io import BagError, BagWriter, RecordedRun, write_run_messages
+from kvark_ros.io import (BagError, BagWriter, RecordedRun, bool_messages, float64_array_messages,
+                          joint_state_messages, wrench_messages, write_run_messages)
 from kvark_ros.io.alignment import read_inputs
 from kvark_ros.tools.reference import align_reference, interpolate
-from kvark_ros.tools.metrics import mahalanobis_squared, observer_metrics
+from kvark_ros.tools.metrics import mahalanobis_rows, observer_metrics
 
 OUTPUT_PREFIX = "/kvark"
 
@@ -176,8 +177,9 @@ def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: Estimat
     contact = np.zeros(count, dtype=bool)
     collision = np.zeros(count, dtype=bool)
     distance = np.full(count, np.nan)
+    scored_covariances = np.full((count, n, n), np.nan) if truth_tau is not None else None
     condition, unobservable = np.full(count, np.nan), np.zeros(count, dtype=int)
-    scoring = 0.0                      # s spent on the Mahalanobis statistic and κ (an SVD), not the estimator's
+    scoring = 0.0                      # s spent reading κ (an SVD), not the estimator's
     started = time.perf_counter()
     for k in range(count):
         if tare_stamp is not None and not tare_started and inputs.stamp[k] >= tare_stamp:
@@ -197,11 +199,11 @@ def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: Estimat
         if estimate.tau_cov is not None:
             tau_var[k] = np.diag(estimate.tau_cov)
             wrench_var[k] = np.diag(estimate.wrench_cov)
-            if truth_tau is not None:
-                scored = time.perf_counter()
-                distance[k] = mahalanobis_squared(estimate.tau_ext - truth_tau[k], estimate.tau_cov)
-                scoring += time.perf_counter() - scored
+            if scored_covariances is not None:
+                scored_covariances[k] = estimate.tau_cov
     elapsed = time.perf_counter() - started - scoring
+    if scored_covariances is not None:                 # after the loop, in one batch (out of us_per_step as before)
+        distance = mahalanobis_rows(tau - truth_tau, scored_covariances)
     reports = estimator.observer.reports_covariance
     rejected = {status: number for status, number in estimator.counts.items() if status != "ok"}
     tare = None
@@ -216,21 +218,27 @@ def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: Estimat
 
 def write_estimates(path: Path, run: RecordedRun, inputs: EstimatorInputs, results: Sequence[ObserverRun],
                     config: EstimatorConfig) -> None:
-    """The bag's own messages plus every observer's outputs, atomically."""
+    """The bag's own messages plus every observer's outputs, atomically: per estimate its joint torque, wrench,
+    torque σ (observers with a covariance), contact and collision flag, one topic after the other."""
     frame = "base" if config.wrench.frame == "base" else config.ee_frame
     names = run.joint_names
     with BagWriter(path, overwrite=True) as bag:
         write_run_messages(bag, run)
         for result in results:
             prefix = f"{OUTPUT_PREFIX}/{result.name}"
-            for k in np.flatnonzero(result.valid):
-                stamp = float(inputs.stamp[k])
-                bag.joint_state(f"{prefix}/external_joint_torque", stamp, names, effort=result.tau_ext[k])
-                bag.wrench(f"{prefix}/external_wrench", stamp, frame, result.wrench[k, :3], result.wrench[k, 3:])
-                if result.tau_std is not None:
-                    bag.float64_array(f"{prefix}/external_joint_torque_stddev", stamp, result.tau_std[k], names=names)
-                bag.boolean(f"{prefix}/contact", stamp, bool(result.contact[k]))
-                bag.boolean(f"{prefix}/collision", stamp, bool(result.collision[k]))
+            valid = np.flatnonzero(result.valid)
+            stamp = inputs.stamp[valid]
+            blocks = [joint_state_messages(f"{prefix}/external_joint_torque", stamp, names,
+                                           effort=result.tau_ext[valid]),
+                      wrench_messages(f"{prefix}/external_wrench", stamp, frame, result.wrench[valid, :3],
+                                      result.wrench[valid, 3:])]
+            if result.tau_std is not None:
+                blocks.append(float64_array_messages(f"{prefix}/external_joint_torque_stddev", stamp,
+                                                     result.tau_std[valid], names))
+            blocks += [bool_messages(f"{prefix}/contact", stamp, result.contact[valid]),
+                       bool_messages(f"{prefix}/collision", stamp, result.collision[valid])]
+            bag.write_messages(blocks, np.tile(np.arange(len(blocks)), len(valid)),
+                               np.repeat(np.arange(len(valid)), len(blocks)))
 
 
 def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path, observers: Sequence[str],

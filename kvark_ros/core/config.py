@@ -24,7 +24,7 @@ from kvark_ros.core.payload import Payload
 __all__ = ["NODE_NAME", "OBSERVER_NAMES", "WRENCH_FRAMES", "VB_VARIANTS", "MEASUREMENTS", "EXAMPLE_ROBOT_DATA_PREFIX",
            "ConfigError", "EstimatorConfig", "FilterSettings", "WrenchSettings", "InputSettings", "ContactSettings",
            "DiagnosticsSettings", "flatten_parameters", "config_from_parameters",
-           "parameter_defaults", "load_config", "with_resolved_paths", "default_config_path", "parse_observers"]
+           "parameter_defaults", "default_filter_settings", "load_config", "with_resolved_paths", "default_config_path", "parse_observers"]
 
 NODE_NAME = "kvark_estimator"
 EXAMPLE_ROBOT_DATA_PREFIX = "example-robot-data:"
@@ -126,6 +126,11 @@ def parse_observers(text: str, with_oracle: bool = False) -> list[str]:
     if unknown:
         raise ConfigError(f"unknown observer {unknown[0]!r}; known: {', '.join(OBSERVER_NAMES)}")
     return names
+
+
+def default_filter_settings() -> FilterSettings:
+    """The ``filter.*`` keys at their defaults (what training calibrates with when given no config)."""
+    return FilterSettings(**{key.attr: key.default for key in KEYS if key.group == "filter"})
 
 
 def parameter_defaults() -> dict[str, Any]:

@@ -24,6 +24,7 @@ from kvark_ros.core.files import read_yaml
 from kvark_ros.core.observers.base import DEFAULT_SAMPLE_PERIOD, FilterTuning
 from kvark_ros.core.observers.momentum_observers import MomentumNoise
 from kvark_ros.core.residual import LEARNED_BASELINES, KMPResidualModel, ResidualModelError
+from kvark_ros.core.calibration import IntervalScale
 from kvark_ros.core.stiction import StictionBand
 
 MODEL_FILE = "model.yaml"
@@ -52,6 +53,7 @@ class TrainedModel:
     augmentation: Augmentation | None = None
     sample_period: float = DEFAULT_SAMPLE_PERIOD   # t_s, s: median period of the training data
     stiction: StictionBand | None = None           # static friction band per joint (None: not identified)
+    interval_scale: IntervalScale | None = None    # kvark's reported-interval factors (None: not calibrated)
 
     @property
     def sample_rate(self) -> float:
@@ -77,7 +79,8 @@ def save_model(directory: str | os.PathLike, model: TrainedModel) -> None:
                     "momentum_noise": None if model.momentum_noise is None else model.momentum_noise.to_dict(),
                     "augmentation_sha256": None if model.augmentation is None else model.augmentation.sha256,
                     "sample_rate_hz": model.sample_rate,
-                    "stiction": None if model.stiction is None else model.stiction.to_dict()}
+                    "stiction": None if model.stiction is None else model.stiction.to_dict(),
+                    "interval_scale": None if model.interval_scale is None else model.interval_scale.to_dict()}
         if model.augmentation is not None:
             (staging / AUGMENTATION_FILE).write_text(model.augmentation.text)
         (staging / MODEL_FILE).write_text(yaml.safe_dump(document, sort_keys=False))
@@ -129,6 +132,8 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
         if not 0.0 < sample_period < 1.0:
             raise ValueError(f"sample_rate_hz {document.get('sample_rate_hz')!r} is not a rate above 1 Hz")
         stiction = None if document.get("stiction") is None else StictionBand.from_dict(document["stiction"])
+        scale = document.get("interval_scale")
+        interval_scale = None if scale is None else IntervalScale.from_dict(scale)
     except (KeyError, TypeError, ValueError) as exc:
         raise ResidualModelError(f"{path}: incomplete or invalid model file ({exc}); retrain the model") from exc
     if joint_names is not None and tuple(joint_names) != names:
@@ -146,10 +151,12 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
     augmentation = _load_augmentation(Path(directory), names, document.get("augmentation_sha256"))
     sizes = {residual.n_joints, len(tuning.process_noise_density)}
     sizes |= {model.n_joints for model in baselines.values()}
+    if interval_scale is not None:
+        sizes.add(len(interval_scale.scale))
     if sizes != {len(names)}:
         raise ResidualModelError(f"{path}: residual models and filter tunings disagree on the number of joints")
     return TrainedModel(robot, names, residual, tuning, dict(document.get("info") or {}), baselines,
-                        baseline_tunings, momentum_noise, augmentation, sample_period, stiction)
+                        baseline_tunings, momentum_noise, augmentation, sample_period, stiction, interval_scale)
 
 
 def _load_augmentation(directory: Path, joint_names: tuple[str, ...], recorded: str | None) -> Augmentation | None:

@@ -8,11 +8,13 @@ samples (paper v2 §V-B), each joint's inputs (q̇ alone, or with q or the gravi
 docs/method.md §3.7) chosen by the log-likelihood on the end of every recording, static filter
 covariances by covariance matching (v2 §V-D), the
 baselines' residual models and the momentum observers' noise levels. The robot model is
-evaluated once per sample (``segment_dynamics``) and reused by every step.
+evaluated once per sample (``segment_dynamics``) and reused by every step; the joints' fits, independent of each
+other, run in worker processes (``train_model``'s ``jobs``).
 """
 from __future__ import annotations
 
 import time
+from concurrent.futures import Executor
 from dataclasses import dataclass, replace
 from typing import Callable, Sequence
 
@@ -20,13 +22,17 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from kvark_ros import __version__
+from kvark_ros.core.calibration import CALIBRATED_OBSERVER, interval_scale
+from kvark_ros.core.config import FilterSettings, default_filter_settings
 from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.model_store import TrainedModel
 from kvark_ros.core.model_checks import data_source
+from kvark_ros.core.observers import make_observer
 from kvark_ros.core.observers.base import FilterTuning
 from kvark_ros.core.observers.momentum_observers import MomentumNoise
 from kvark_ros.core.residual import INPUT_KINDS, LEARNED_BASELINES, KMPResidualModel
-from kvark_ros.core.residual.kmp_inputs import fit_kmp, second_inputs
+from kvark_ros.core.residual.common import joint_workers, single_threaded
+from kvark_ros.core.residual.kmp_inputs import fit_kmp, second_inputs, start_kmp_fit
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.core.stiction import StictionBand, friction_torque, identify_band
 from kvark_ros.core.tuning import match_covariances, virtual_measurements
@@ -123,17 +129,17 @@ def calibrate_lambda2(model: KMPResidualModel, qd: np.ndarray, tau_r: np.ndarray
     """Per joint, the λ₂ whose μ ± 1.96 σ interval covers ``target`` of the held-out residuals
     (q̇, τ_r and, for a model that takes them, q and g: (T, n)).
 
-    λ₂ leaves the KMP mean alone (eq. 22) and scales the variance (eq. 23). Returns the
-    calibrated model and the held-out coverage per joint.
+    λ₂ leaves the KMP mean alone (eq. 22) and scales the variance (eq. 23), which every candidate gets from one
+    eigendecomposition per joint (``KMPResidualModel.lambda2_sweep``). Returns the calibrated model and its held-out
+    coverage per joint.
     """
-    coverage = np.empty((len(LAMBDA2_GRID), model.n_joints))
-    for index, lambda2 in enumerate(LAMBDA2_GRID):
-        hyper = replace(model.hyper, lambda2=np.full(model.n_joints, lambda2))
-        mean, var = model.with_hyperparameters(hyper).predict_batch(qd, q, g)
-        coverage[index] = np.mean(np.abs(tau_r - mean) <= 1.96 * np.sqrt(var), axis=0)
-    best = np.argmin(np.abs(coverage - target), axis=0)
-    hyper = replace(model.hyper, lambda2=LAMBDA2_GRID[best])
-    return model.with_hyperparameters(hyper), coverage[best, np.arange(model.n_joints)]
+    hits = np.zeros((len(LAMBDA2_GRID), model.n_joints))
+    for rows, mean, var in model.lambda2_sweep(qd, q, g, LAMBDA2_GRID):
+        hits += np.sum(np.abs(tau_r[rows] - mean) <= 1.96 * np.sqrt(var), axis=1)
+    best = np.argmin(np.abs(hits / len(qd) - target), axis=0)
+    calibrated = model.with_hyperparameters(replace(model.hyper, lambda2=LAMBDA2_GRID[best]))
+    mean, var = calibrated.predict_batch(qd, q, g)
+    return calibrated, np.mean(np.abs(tau_r - mean) <= 1.96 * np.sqrt(var), axis=0)
 
 
 def lambda2_warnings(lambda2: np.ndarray, coverage: np.ndarray, joint_names: Sequence[str]) -> list[str]:
@@ -153,14 +159,16 @@ def _n_support(kinds: Sequence[str]) -> int:
     return N_SUPPORT if all(kind == "qd" for kind in kinds) else N_SUPPORT_2D
 
 
-def choose_inputs(data: TrainingData, mode: str, seed: int,
-                  log: Callable[[str], None]) -> tuple[tuple[str, ...], dict[str, list[float]]]:
+@single_threaded
+def choose_inputs(data: TrainingData, mode: str, seed: int, log: Callable[[str], None],
+                  executor: Executor | None = None) -> tuple[tuple[str, ...], dict[str, list[float]]]:
     """Each joint's residual inputs (``INPUT_KINDS``) and the held-out log-likelihood behind the choice.
 
     ``mode`` ``auto``: every kind is fitted on all but the last ``SELECTION_HOLDOUT`` of every recording,
     its λ₂ calibrated and its mean Gaussian log-likelihood per sample taken on that end (contiguous, so it
     measures motion the model has not seen, not interpolation between neighbouring samples); a joint keeps
-    q̇ alone unless a second input gains ``MIN_NLL_GAIN``. Any other mode is one kind for every joint.
+    q̇ alone unless a second input gains ``MIN_NLL_GAIN``. Any other mode is one kind for every joint. The joints
+    are fitted in ``executor``'s workers when given.
     """
     n = data.qd.shape[1]
     if mode in INPUT_KINDS:
@@ -169,16 +177,20 @@ def choose_inputs(data: TrainingData, mode: str, seed: int,
         raise ValueError(f"residual inputs must be one of {list(INPUT_MODES)}, got {mode!r}")
     tail = np.concatenate([np.arange(len(seg.stamp)) >= (1.0 - SELECTION_HOLDOUT) * len(seg.stamp)
                            for seg in data.segments])
-    scores: dict[str, list[float]] = {}
-    for step, kind in enumerate(INPUT_KINDS, start=1):
-        log(f"[train] residual inputs {step}/{len(INPUT_KINDS)}: fitting {kind} on every joint ...")
+    log(f"[train] residual inputs: fitting {', '.join(INPUT_KINDS)} on every joint ...")
+    fits = {}
+    for kind in sorted(INPUT_KINDS, key=lambda kind: kind == "qd"):     # the two-input fits, the longest, first
         kinds = (kind,) * n
         z = second_inputs(kinds, data.q, data.g)
-        model = fit_kmp(data.qd[~tail], z[~tail], data.tau_r[~tail], kinds, N_COMPONENTS, _n_support(kinds), seed)
-        model, _ = calibrate_lambda2(model, data.qd[tail], data.tau_r[tail], data.q[tail], data.g[tail])
+        fits[kind] = start_kmp_fit(data.qd[~tail], z[~tail], data.tau_r[~tail], kinds, N_COMPONENTS,
+                                   _n_support(kinds), seed, executor)
+    scores: dict[str, list[float]] = {}
+    for step, kind in enumerate(INPUT_KINDS, start=1):
+        model, _ = calibrate_lambda2(fits[kind](), data.qd[tail], data.tau_r[tail], data.q[tail], data.g[tail])
         mean, var = model.predict_batch(data.qd[tail], data.q[tail], data.g[tail])
         loglik = np.mean(-0.5 * np.log(2.0 * np.pi * var) - 0.5 * (data.tau_r[tail] - mean) ** 2 / var, axis=0)
         scores[kind] = loglik.tolist()
+        log(f"[train] residual inputs {step}/{len(INPUT_KINDS)}: {kind} fitted on every joint, λ2 calibrated")
     table = np.array([scores[kind] for kind in INPUT_KINDS])
     best = np.argmax(table, axis=0)
     chosen = tuple(INPUT_KINDS[b] if table[b, j] >= table[0, j] + MIN_NLL_GAIN else "qd" for j, b in enumerate(best))
@@ -196,44 +208,61 @@ def _tuning(data: TrainingData, mean_of: Callable[[EstimatorInputs, SegmentDynam
     return match_covariances(ys, dt)
 
 
+def _fit_baselines(data: TrainingData, qd_fit: np.ndarray, tau_fit: np.ndarray, kmp: KMPResidualModel, seed: int,
+                   log: Callable[[str], None], executor: Executor | None) -> tuple[dict, dict]:
+    """The learned baselines' residual models (fitted on q̇, τ_r (T, n) of the KMP's samples, each joint in
+    ``executor``'s workers when given) and their filter tunings, by observer name."""
+    # GMR-GP samples the KMP's own GMR reference (fitted with N_COMPONENTS), as in the paper.
+    options = {"gmr_gp": {"n_components": N_COMPONENTS, "n_support": N_SUPPORT, "reference": kmp.reference}}
+    residuals: dict = {}
+    tunings: dict = {}
+    for step, (name, model_class) in enumerate(LEARNED_BASELINES.items(), start=1):
+        fit_started = time.perf_counter()
+        residuals[name] = model_class.fit(qd_fit, tau_fit, seed=seed, executor=executor, **options.get(name, {}))
+        tunings[name] = _tuning(data, lambda seg, dyn, model=residuals[name]: model.predict_batch(seg.qd)[0])
+        log(f"[train] baselines {step}/{len(LEARNED_BASELINES)}: {name} fitted and tuned "
+            f"({time.perf_counter() - fit_started:.1f} s)")
+    return residuals, tunings
+
+
+@single_threaded
 def train_model(robot: RobotModel, robot_name: str, segments: Sequence[EstimatorInputs], *,
                 baselines: bool = True, seed: int = 0, info: dict | None = None, residual_inputs: str = "auto",
-                log: Callable[[str], None] = print) -> TrainedModel:
+                log: Callable[[str], None] = print, jobs: int | None = None,
+                settings: FilterSettings | None = None) -> TrainedModel:
     """Everything the observers need, from contact-free recordings of ``robot``; ``residual_inputs`` is one
-    of ``INPUT_MODES`` (``choose_inputs``)."""
+    of ``INPUT_MODES`` (``choose_inputs``); ``settings``: the ``filter.*`` keys the kvark intervals are calibrated
+    with (``calibrate_intervals``; None: the defaults).
+
+    The joints' fits are independent and run in ``jobs`` worker processes (None: every available core, 1: one after
+    the other here), each with its own seed and one BLAS thread: the model is the same bit for bit. BLAS runs one
+    thread here too (the matrices are small, see ``single_threaded_blas``).
+    """
     started = time.perf_counter()
     data = training_data(robot, segments)
     log(f"[train] robot model along {len(segments)} recording(s): {len(data.qd)} samples "
         f"({time.perf_counter() - started:.1f} s)")
-    kinds, selection = choose_inputs(data, residual_inputs, seed, log)
-    rng = np.random.default_rng(seed)
-    held_out = rng.random(len(data.qd)) < HOLDOUT
-    qd_fit, tau_fit = data.qd[~held_out], data.tau_r[~held_out]
-    q_held, g_held = data.q[held_out], data.g[held_out]
-    log(f"[train] KMP residual of {len(kinds)} joints: GMM → GMR, GP fit on {(~held_out).sum()} samples, "
-        f"{held_out.sum()} held out for λ2 ...")
-    z = second_inputs(kinds, data.q, data.g)
-    kmp = fit_kmp(qd_fit, z[~held_out], tau_fit, kinds, N_COMPONENTS, _n_support(kinds), seed)
-    log(f"[train] GP fit: length scale {np.round(kmp.hyper.length_scale, 3).tolist()} rad/s, "
-        f"λ1 {np.round(kmp.hyper.lambda1, 4).tolist()}")
-    kmp, coverage = calibrate_lambda2(kmp, data.qd[held_out], data.tau_r[held_out], q_held, g_held)
-    log(f"[train] KMP λ2 {kmp.hyper.lambda2.tolist()}; held-out 95% coverage {np.round(coverage, 3).tolist()}")
-    for line in lambda2_warnings(kmp.hyper.lambda2, coverage, robot.joint_names):
-        log(line)
-    tuning = _tuning(data, lambda seg, dyn: kmp.predict_batch(seg.qd, seg.q, dyn.g)[0])
-    log("[train] K-VARK filter tuned by covariance matching")
+    with joint_workers(jobs, data.qd.shape[1]) as executor:
+        kinds, selection = choose_inputs(data, residual_inputs, seed, log, executor)
+        rng = np.random.default_rng(seed)
+        held_out = rng.random(len(data.qd)) < HOLDOUT
+        qd_fit, tau_fit = data.qd[~held_out], data.tau_r[~held_out]
+        q_held, g_held = data.q[held_out], data.g[held_out]
+        log(f"[train] KMP residual of {len(kinds)} joints: GMM → GMR, GP fit on {(~held_out).sum()} samples, "
+            f"{held_out.sum()} held out for λ2 ...")
+        z = second_inputs(kinds, data.q, data.g)
+        kmp = fit_kmp(qd_fit, z[~held_out], tau_fit, kinds, N_COMPONENTS, _n_support(kinds), seed, executor)
+        log(f"[train] GP fit: length scale {np.round(kmp.hyper.length_scale, 3).tolist()} rad/s, "
+            f"λ1 {np.round(kmp.hyper.lambda1, 4).tolist()}")
+        kmp, coverage = calibrate_lambda2(kmp, data.qd[held_out], data.tau_r[held_out], q_held, g_held)
+        log(f"[train] KMP λ2 {kmp.hyper.lambda2.tolist()}; held-out 95% coverage {np.round(coverage, 3).tolist()}")
+        for line in lambda2_warnings(kmp.hyper.lambda2, coverage, robot.joint_names):
+            log(line)
+        tuning = _tuning(data, lambda seg, dyn: kmp.predict_batch(seg.qd, seg.q, dyn.g)[0])
+        log("[train] K-VARK filter tuned by covariance matching")
+        residuals, tunings = (_fit_baselines(data, qd_fit, tau_fit, kmp, seed, log, executor) if baselines
+                              else ({}, {}))
     qd_held, tau_held = data.qd[held_out], data.tau_r[held_out]
-    residuals: dict = {}
-    tunings: dict = {}
-    if baselines:
-        # GMR-GP samples the KMP's own GMR reference (fitted with N_COMPONENTS), as in the paper.
-        options = {"gmr_gp": {"n_components": N_COMPONENTS, "n_support": N_SUPPORT, "reference": kmp.reference}}
-        for step, (name, model_class) in enumerate(LEARNED_BASELINES.items(), start=1):
-            fit_started = time.perf_counter()
-            residuals[name] = model_class.fit(qd_fit, tau_fit, seed=seed, **options.get(name, {}))
-            tunings[name] = _tuning(data, lambda seg, dyn, model=residuals[name]: model.predict_batch(seg.qd)[0])
-            log(f"[train] baselines {step}/{len(LEARNED_BASELINES)}: {name} fitted and tuned "
-                f"({time.perf_counter() - fit_started:.1f} s)")
     longest = int(np.argmax([len(seg.stamp) for seg in data.segments]))
     noise = MomentumNoise.from_training(data.dynamics[longest].p, data.dynamics[longest].u,
                                         data.segments[longest].stamp)
@@ -266,5 +295,20 @@ def train_model(robot: RobotModel, robot_name: str, segments: Sequence[Estimator
     stiction = StictionBand(identify_band(data.qd, friction))
     log("[train] static friction band F_s (N·m): "
         + ", ".join(f"{name} {value:.2f}" for name, value in zip(robot.joint_names, stiction.band)))
-    return TrainedModel(robot_name, robot.joint_names, kmp, tuning, info, residuals, tunings, noise,
-                        robot.augmentation, sample_period, stiction)
+    trained = TrainedModel(robot_name, robot.joint_names, kmp, tuning, info, residuals, tunings, noise,
+                           robot.augmentation, sample_period, stiction)
+    return calibrate_intervals(trained, data, settings or default_filter_settings(), log)
+
+
+def calibrate_intervals(trained: TrainedModel, data: TrainingData, settings: FilterSettings,
+                        log: Callable[[str], None]) -> TrainedModel:
+    """``trained`` with kvark's interval factors c read off its own contact-free recordings (docs/method.md §4.13)."""
+    started = time.perf_counter()
+    scale = interval_scale(make_observer(CALIBRATED_OBSERVER, trained, settings),
+                           [seg.stamp for seg in data.segments], [seg.qd for seg in data.segments],
+                           [seg.q for seg in data.segments], [dyn.p for dyn in data.dynamics],
+                           [dyn.u for dyn in data.dynamics], [dyn.g for dyn in data.dynamics])
+    log(f"[train] kvark interval factors c (95 % of the contact-free τ̂ within ±1.96 c σ): "
+        + ", ".join(f"{name} {value:.2f}" for name, value in zip(trained.joint_names, scale.scale))
+        + f" ({time.perf_counter() - started:.1f} s)")
+    return replace(trained, interval_scale=scale)

@@ -492,7 +492,7 @@ def train_on_diagnosis(config: EstimatorConfig, robot: RobotModel, segments: Seq
     write_outputs(diagnosis, robot, out / "diagnosis", config.robot, log=log)
     augmentation = load_augmentation(out / "diagnosis" / "augmentation.yaml", config.joint_names)
     trained = train_model(RobotModel.from_config(config, augmentation), config.robot, segments, baselines=baselines,
-                          seed=seed, log=log)
+                          seed=seed, log=log, settings=config.filter)
     save_model(out / "model_augmented", trained)
     return trained, {"effects": list(augmentation.effect_names),
                      "gap_before": diagnosis.result["gap_before"]["joint_rmse_mean"],

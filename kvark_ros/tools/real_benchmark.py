@@ -138,7 +138,8 @@ def run_real(args: argparse.Namespace) -> int:
         f"{inputs.torque_source})")
     robot = RobotModel.from_config(config)
     log("[benchmark] step 1/4: training on the nominal model")
-    nominal = train_model(robot, config.robot, [train], baselines=not args.no_baselines, log=log)
+    nominal = train_model(robot, config.robot, [train], baselines=not args.no_baselines, log=log,
+                          settings=config.filter)
     save_model(out / "model", nominal)
     log(f"[benchmark] step 2/4: {len(observers)} observers on the held-out part, nominal model")
     results: dict[str, Any] = {

@@ -15,6 +15,7 @@ from pathlib import Path
 from kvark_ros.core.augmentation import load_augmentation
 from kvark_ros.core.config import EstimatorConfig, load_config
 from kvark_ros.core.model_store import save_model
+from kvark_ros.core.residual.common import available_cores
 from kvark_ros.core.robot_model import RobotModel, urdf_sha256
 from kvark_ros.core.training import INPUT_MODES, train_model
 from kvark_ros.io.alignment import load_recordings
@@ -38,6 +39,14 @@ def bag_hash(path: Path) -> str:
     return digest.hexdigest()
 
 
+def positive_int(text: str) -> int:
+    """An integer ≥ 1 (argparse type of --jobs)."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "train", help="train the residual models and filter tuning from contact-free bags",
@@ -58,6 +67,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "gravity torque (qd_g) by log-likelihood on the last 20 %% of every bag; or one of "
                              "them for every joint")
     parser.add_argument("--seed", type=int, default=0, help="random seed for the hold-out split and fits")
+    parser.add_argument("--jobs", type=positive_int, default=None, metavar="N",
+                        help="worker processes for the joints' fits, each with one BLAS thread (default: every "
+                             f"available core, {available_cores()} here; 1 fits them one after the other in this "
+                             "process); the model is the same for any N")
     parser.add_argument("--no-plots", action="store_true", help="do not write training plots")
     parser.set_defaults(run=run)
 
@@ -78,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
                 "file": Path(source).name, "effects": list(augmentation.effect_names)},
             "bags": [{"name": Path(bag).name, "sha256": bag_hash(Path(bag))} for bag in args.bags]}
     trained = train_model(robot, config.robot, segments, baselines=not args.no_baselines, seed=args.seed,
-                          info=info, residual_inputs=args.residual_inputs, log=lambda line: print(line, flush=True))
+                          info=info, residual_inputs=args.residual_inputs, log=lambda line: print(line, flush=True),
+                          jobs=args.jobs, settings=config.filter)
     save_model(args.out, trained)
     print(f"[train] model written to {args.out}", flush=True)
     if not args.no_plots:

@@ -1,13 +1,23 @@
-"""Conventions every residual model shares: variance floor, input checks, batch size, BLAS threads."""
+"""Conventions every residual model shares: variance floor, input checks, batch size, BLAS threads, and the
+worker processes that fit the joints in parallel."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
-from typing import Any, Callable
+import multiprocessing
+import os
+import signal
+import sys
+from concurrent.futures import Executor, ProcessPoolExecutor
+from typing import Any, Callable, Iterator, Sequence, TypeVar
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from kvark_ros.core.linalg import single_threaded_blas
+
+Result = TypeVar("Result")
 
 # Smallest predictive variance returned (N²·m²): eq. 23 (and the GP variances) is a difference of
 # two nearly equal numbers near the data and round-off can push it slightly below zero.
@@ -80,3 +90,61 @@ def single_threaded(func: Callable) -> Callable:
         with single_threaded_blas():
             return func(*args, **kwargs)
     return wrapper
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity), the default number of training workers."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:          # no sched_getaffinity (macOS, Windows)
+        return os.cpu_count() or 1
+
+
+def _start_worker() -> None:
+    """Every worker: BLAS/OpenMP one thread (the fits are small, and results must not depend on the core count), and
+    Ctrl-C left to the parent, which cancels the queued fits and waits for the running ones."""
+    threadpool_limits(limits=1)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def joint_workers(jobs: int | None, tasks: int) -> Iterator[Executor | None]:
+    """Worker processes for ``submit_joints`` and ``map_joints``: ``jobs`` of them (None: ``available_cores``), at most
+    ``tasks``; None (fit here, one after the other) for one job.
+
+    On Linux the workers are forked: a spawned worker re-imports numpy, scipy and scikit-learn (about 0.9 s of CPU
+    each, measured), more than a joint's fit. On leaving, fits not yet started are cancelled (an error or Ctrl-C
+    does not wait for the whole queue).
+    """
+    if jobs is not None and jobs < 1:
+        raise ValueError(f"jobs must be at least 1, got {jobs}")
+    jobs = min(available_cores() if jobs is None else jobs, tasks)
+    if jobs <= 1:
+        yield None
+        return
+    context = multiprocessing.get_context("fork" if sys.platform == "linux" else None)
+    executor = ProcessPoolExecutor(jobs, mp_context=context, initializer=_start_worker)
+    try:
+        yield executor
+    finally:
+        executor.shutdown(wait=True, cancel_futures=True)
+
+
+def submit_joints(function: Callable[..., Result], tasks: Sequence[tuple],
+                  executor: Executor | None) -> Callable[[], list[Result]]:
+    """Start ``function(*task)`` for every task in the ``executor``'s workers (in order: longest first balances
+    them), or run them here when it is None; the returned function waits for the results, in task order.
+
+    A task holds one joint's data and its own seed, so the result does not depend on where it runs: the same bits
+    with one worker or many (test_training_speed_equivalence.py).
+    """
+    if executor is None:
+        results = [function(*task) for task in tasks]
+        return lambda: results
+    futures = [executor.submit(function, *task) for task in tasks]
+    return lambda: [future.result() for future in futures]
+
+
+def map_joints(function: Callable[..., Result], tasks: Sequence[tuple], executor: Executor | None) -> list[Result]:
+    """``function(*task)`` for every task, in order, in the ``executor``'s workers or here (``submit_joints``)."""
+    return submit_joints(function, tasks, executor)()

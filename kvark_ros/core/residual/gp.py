@@ -19,7 +19,7 @@ optimization", λ₁ "selected from the optimized likelihood/noise level").
 from __future__ import annotations
 
 import os
-import warnings
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -31,6 +31,7 @@ from kvark_ros.core.residual.common import (
     BATCH_CHUNK,
     VARIANCE_FLOOR,
     check_batch,
+    map_joints,
     single_threaded,
 )
 from kvark_ros.core.residual.files import (
@@ -43,6 +44,7 @@ from kvark_ros.core.residual.files import (
     read_model_header,
     save_model_pair,
 )
+from kvark_ros.core.residual.gp_fit import fit_gp
 from kvark_ros.core.residual.kmp import GMRReference, KMPHyperparameters, fit_gmr_reference
 
 __all__ = [
@@ -55,7 +57,7 @@ __all__ = [
 # factorisations of K_mm (inducing points) and K + σn²/m I well defined when points are
 # closer than the length scale. 1e-8·σf² changes predictions by ≪ 1e-6 N·m.
 KERNEL_JITTER_REL = 1e-8
-# Bounds of the sklearn hyperparameter search, in units scaled so that the targets have unit
+# Bounds of the hyperparameter search, in units scaled so that the targets have unit
 # RMS: amplitude σf² and noise σn² (the noise bound is low enough for noise-free data).
 _AMPLITUDE_BOUNDS = (1e-4, 1e4)
 _NOISE_BOUNDS = (1e-8, 1e1)
@@ -113,35 +115,27 @@ class _SEFit:
 def _fit_se_gp(x: np.ndarray, y: np.ndarray, length_scale_bounds: tuple[float, float],
                seed: int, n_restarts: int = 2) -> _SEFit:
     """Fit σf², length scale and σn² of a zero-mean SE GP to (x, y) by maximum marginal
-    likelihood (sklearn GaussianProcessRegressor, L-BFGS-B with restarts).
+    likelihood (``gp_fit.fit_gp``: L-BFGS-B with restarts, as sklearn's GaussianProcessRegressor).
 
     The targets are divided by their RMS for the search (so the fixed amplitude and noise
     bounds are relative) and the result is mapped back to physical units. The prior mean is
-    zero, as in KMP: far from the data the prediction returns to 0.
+    zero, as in KMP: far from the data the prediction returns to 0. A hyperparameter at its bound
+    (typically the length scale at the support spacing) is expected and reported through
+    length_scale_at_lower_bound.
     """
-    from sklearn.exceptions import ConvergenceWarning           # fitting only: loading a model needs no sklearn
-    from sklearn.gaussian_process import GaussianProcessRegressor
-    from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
     scale = float(np.sqrt(np.mean(y ** 2)))
     if not scale > 0.0:
         scale = 1.0
     low, high = length_scale_bounds
     start = float(np.clip(0.1 * (x.max() - x.min()), low, high))
-    kernel = (ConstantKernel(1.0, _AMPLITUDE_BOUNDS) * RBF(start, (low, high))
-              + WhiteKernel(1e-2, _NOISE_BOUNDS))
-    gpr = GaussianProcessRegressor(kernel=kernel, alpha=1e-10, normalize_y=False,
-                                   n_restarts_optimizer=n_restarts, random_state=seed)
-    with warnings.catch_warnings():
-        # A hyperparameter at its bound (typically the length scale at the support spacing)
-        # is expected and reported through length_scale_at_lower_bound.
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        gpr.fit(x[:, None], y / scale)
-    fitted = gpr.kernel_
-    length_scale = float(fitted.k1.k2.length_scale)
+    theta0 = np.log([1.0, start, 1e-2])                      # σf², ℓ, σn² in the scaled units
+    bounds = np.log([_AMPLITUDE_BOUNDS, (low, high), _NOISE_BOUNDS])
+    fit = fit_gp(x[:, None], y / scale, theta0, bounds, n_restarts, seed)
+    length_scale = float(fit.length_scale[0])
     return _SEFit(length_scale=length_scale,
-                  sigma_f2=float(fitted.k1.k1.constant_value) * scale ** 2,
-                  noise_var=float(fitted.k2.noise_level) * scale ** 2,
-                  log_marginal_likelihood=float(gpr.log_marginal_likelihood_value_),
+                  sigma_f2=fit.sigma_f2 * scale ** 2,
+                  noise_var=fit.noise_var * scale ** 2,
+                  log_marginal_likelihood=fit.log_marginal_likelihood,
                   length_scale_at_lower_bound=bool(length_scale <= low * (1.0 + 1e-6)))
 
 
@@ -234,15 +228,31 @@ def _cholesky(matrix: np.ndarray, what: str) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 
-def _support_spacing(reference: GMRReference) -> np.ndarray:
-    """Largest gap between neighbouring support points per joint (n,), rad/s."""
-    return np.max(np.diff(reference.s, axis=1), axis=1)
+def gmr_sample_noise(n: int, n_support: int, samples_per_support: int, seed: int) -> np.ndarray:
+    """The standard normal draws ε (n, N, m) of the GMR samples y = μᵢ + σᵢ ε, joint after joint from one stream
+    seeded by ``seed``: drawn up front, each joint's fit can run anywhere and draw what it drew in turn."""
+    if samples_per_support < 1:
+        raise ValueError(f"samples_per_support must be >= 1, got {samples_per_support}")
+    return np.random.default_rng(seed).standard_normal((n, n_support, samples_per_support))
 
 
-def _fit_gp_on_gmr_samples(reference: GMRReference, samples_per_support: int,
-                           seed: int) -> tuple[GPHyperparameters, np.ndarray, list[dict]]:
+def fit_gp_on_joint_samples(s: np.ndarray, mu: np.ndarray, sigma2: np.ndarray, noise: np.ndarray,
+                            seed: int) -> tuple[_SEFit, np.ndarray]:
+    """One joint of ``_fit_gp_on_gmr_samples``: samples y = μᵢ + σᵢ ε (ε: noise (N, m)) at the support points s (N,)
+    rad/s of a GMR reference (μ, σ² (N,)), the SE GP fitted to them and their means ȳ (N,)."""
+    y = mu[:, None] + np.sqrt(sigma2)[:, None] * noise
+    spacing = np.max(np.diff(s))
+    span = s[-1] - s[0]
+    fit = _fit_se_gp(np.repeat(s, noise.shape[1]), y.ravel(),
+                     (spacing, max(_MAX_LENGTH_SCALE_REL * span, 2.0 * spacing)), seed=seed)
+    return fit, y.mean(axis=1)
+
+
+def _fit_gp_on_gmr_samples(reference: GMRReference, samples_per_support: int, seed: int,
+                           executor: Executor | None = None) -> tuple[GPHyperparameters, np.ndarray, list[dict]]:
     """Draw `samples_per_support` values y ~ N(μ_i, σ²_i) at every support point s_i of every
-    joint and fit the SE GP hyperparameters to them by marginal likelihood.
+    joint and fit the SE GP hyperparameters to them by marginal likelihood, each joint in ``executor``'s workers
+    (``map_joints``) or here.
 
     The length scale is bounded below by the support spacing (inside the optimisation, so σf²
     and σn² are fitted for the length scale that is used): between support points no data
@@ -251,23 +261,12 @@ def _fit_gp_on_gmr_samples(reference: GMRReference, samples_per_support: int,
 
     Returns the hyperparameters, the sample means ȳ (n, N) and per-joint fit info.
     """
-    if samples_per_support < 1:
-        raise ValueError(f"samples_per_support must be >= 1, got {samples_per_support}")
-    rng = np.random.default_rng(seed)
     n, n_sup = reference.s.shape
-    spacing = _support_spacing(reference)
-    y_mean = np.empty((n, n_sup))
-    fits = []
-    for j in range(n):
-        s = reference.s[j]
-        y = (reference.mu[j][:, None] + np.sqrt(reference.sigma2[j])[:, None]
-             * rng.standard_normal((n_sup, samples_per_support)))
-        y_mean[j] = y.mean(axis=1)
-        span = s[-1] - s[0]
-        fit = _fit_se_gp(np.repeat(s, samples_per_support), y.ravel(),
-                         (spacing[j], max(_MAX_LENGTH_SCALE_REL * span, 2.0 * spacing[j])),
-                         seed=seed + j)
-        fits.append(fit)
+    noise = gmr_sample_noise(n, n_sup, samples_per_support, seed)
+    results = map_joints(fit_gp_on_joint_samples, [(reference.s[j], reference.mu[j], reference.sigma2[j], noise[j],
+                                                    seed + j) for j in range(n)], executor)
+    fits = [fit for fit, _ in results]
+    y_mean = np.array([means for _, means in results])
     hyper = GPHyperparameters(length_scale=[f.length_scale for f in fits],
                               sigma_f2=[f.sigma_f2 for f in fits],
                               noise_var=[f.noise_var for f in fits])
@@ -282,7 +281,7 @@ class GMRGPResidualModel(_KernelPredictor):
     Training: the GMR reference {s_i, μ_i, σ²_i} (fit_gmr_reference, the same N support points
     as KMP) is sampled m = samples_per_support times per support point, y_ik ~ N(μ_i, σ²_i);
     a zero-mean SE GP with white noise is fitted to the N·m points by marginal likelihood
-    (sklearn). Because the m samples at s_i share their input, the exact GP posterior on them
+    (``gp_fit.fit_gp``). Because the m samples at s_i share their input, the exact GP posterior on them
     equals the posterior of one observation ȳ_i (their mean) per support point with noise
     σn²/m (the likelihood ∏_k N(y_ik; f_i, σn²) ∝ N(ȳ_i; f_i, σn²/m) in f), so the model keeps
     only s (n, N) and ȳ (n, N) and precomputes, with L Lᵀ = K + (σn²/m) I:
@@ -350,9 +349,10 @@ class GMRGPResidualModel(_KernelPredictor):
     @single_threaded
     def fit(cls, qd: np.ndarray, tau_r: np.ndarray, n_components: int = 10,
             n_support: int = 30, samples_per_support: int = 10, seed: int = 0,
-            reference: GMRReference | None = None) -> GMRGPResidualModel:
+            reference: GMRReference | None = None, executor: Executor | None = None) -> GMRGPResidualModel:
         """Fit GMM/GMR to qd (T, n) rad/s and tau_r (T, n) N·m, sample the reference
-        `samples_per_support` times per support point and fit the GP to the samples.
+        `samples_per_support` times per support point and fit the GP to the samples (each joint's GP in
+        ``executor``'s workers when given, ``map_joints``).
 
         reference: an already fitted GMR reference (e.g. the KMP's), to skip the GMM fit;
         then qd, tau_r are not used and may be None.
@@ -360,7 +360,7 @@ class GMRGPResidualModel(_KernelPredictor):
         if reference is None:
             reference = fit_gmr_reference(qd, tau_r, n_components=n_components,
                                           n_support=n_support, seed=seed)
-        hyper, y_mean, info = _fit_gp_on_gmr_samples(reference, samples_per_support, seed)
+        hyper, y_mean, info = _fit_gp_on_gmr_samples(reference, samples_per_support, seed, executor)
         metadata = {"fit": {"n_components": n_components if qd is not None else None,
                             "samples_per_support": samples_per_support, "seed": seed,
                             "joints": info}}
@@ -415,7 +415,8 @@ class GMRGPResidualModel(_KernelPredictor):
 def hyperparameters_from_gp(qd: np.ndarray, tau_r: np.ndarray, n_support: int = 30,
                             seed: int = 0, *, n_components: int = 10,
                             samples_per_support: int = 10,
-                            reference: GMRReference | None = None) -> KMPHyperparameters:
+                            reference: GMRReference | None = None,
+                            executor: Executor | None = None) -> KMPHyperparameters:
     """KMP hyperparameters from a GP marginal-likelihood fit on GMR-sampled data (paper v2 §V-B).
 
     The GP is the one GMR-GP uses (same reference, samples, seed, so the two models share
@@ -436,17 +437,28 @@ def hyperparameters_from_gp(qd: np.ndarray, tau_r: np.ndarray, n_support: int = 
     - lambda2: the default scaling N·sigma_f2 (far-field variance N·σf²/λ₂ = 1 N²·m²); the
       filter calibration step sets the variance level later.
 
-    qd, tau_r: (T, n) rad/s, N·m (ignored when `reference` is given).
+    qd, tau_r: (T, n) rad/s, N·m (ignored when `reference` is given). Each joint's GP is fitted in ``executor``'s
+    workers when given (``map_joints``).
     """
     if reference is None:
         reference = fit_gmr_reference(qd, tau_r, n_components=n_components,
                                       n_support=n_support, seed=seed)
-    hyper, _, _ = _fit_gp_on_gmr_samples(reference, samples_per_support, seed)
-    n_sup = reference.s.shape[1]
-    length_scale = np.maximum(hyper.length_scale, _support_spacing(reference))
-    lambda1 = hyper.noise_var / (samples_per_support * np.mean(reference.sigma2, axis=1))
-    return KMPHyperparameters(length_scale=length_scale, sigma_f2=hyper.sigma_f2,
-                              lambda1=lambda1, lambda2=n_sup * hyper.sigma_f2)
+    n, n_sup = reference.s.shape
+    noise = gmr_sample_noise(n, n_sup, samples_per_support, seed)
+    values = map_joints(kmp_hyperparameters_of_joint, [(reference.s[j], reference.mu[j], reference.sigma2[j],
+                                                        noise[j], seed + j) for j in range(n)], executor)
+    length_scale, sigma_f2, lambda1 = (np.array(column) for column in zip(*values))
+    return KMPHyperparameters(length_scale=length_scale, sigma_f2=sigma_f2,
+                              lambda1=lambda1, lambda2=n_sup * sigma_f2)
+
+
+def kmp_hyperparameters_of_joint(s: np.ndarray, mu: np.ndarray, sigma2: np.ndarray, noise: np.ndarray,
+                                 seed: int) -> tuple[float, float, float]:
+    """One joint of ``hyperparameters_from_gp``: (length scale, σ_f², λ₁) from the GP on the samples μᵢ + σᵢ ε of its
+    GMR reference (s, μ, σ² (N,); ε: noise (N, m))."""
+    fit, _ = fit_gp_on_joint_samples(s, mu, sigma2, noise, seed)
+    length_scale = max(fit.length_scale, float(np.max(np.diff(s))))   # not below the support spacing
+    return length_scale, fit.sigma_f2, fit.noise_var / (noise.shape[1] * np.mean(sigma2))   # λ₁ = σn²/(m mean σ²)
 
 
 # --------------------------------------------------------------------------------------------

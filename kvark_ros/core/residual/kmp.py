@@ -26,13 +26,19 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 import scipy.linalg
 from scipy.special import logsumexp
 
-from kvark_ros.core.residual.common import BATCH_CHUNK, VARIANCE_FLOOR, check_batch, check_training_data
+from kvark_ros.core.residual.common import (
+    BATCH_CHUNK,
+    VARIANCE_FLOOR,
+    check_batch,
+    check_training_data,
+    single_threaded,
+)
 from kvark_ros.core.residual.files import (
     FORMAT_VERSION,
     ResidualModelError,
@@ -57,13 +63,6 @@ STEM = "kmp"
 NPZ_NAME = f"{STEM}.npz"
 YAML_NAME = f"{STEM}.yaml"
 
-# reg_covar of the GMM, in standardised units (both coordinates have unit variance). It keeps
-# each component's standard deviation above 1 % of the data spread, so a component cannot
-# collapse onto one line of quantised velocities (encoder resolution / t_s) or onto q̇ = 0
-# samples at standstill, and it costs little: a noise variance of (2 % of the spread)² is
-# inflated by only 25 %.
-GMM_REG_COVAR = 1e-4
-GMM_MAX_ITER = 300
 # Floor of the GMR variances relative to the variance of the joint's residual torque, with an
 # absolute floor for a constant residual, so that Σ in eqs. 22-23 stays positive definite.
 GMR_VARIANCE_FLOOR_REL = 1e-6
@@ -162,22 +161,20 @@ def default_hyperparameters(n: int, n_support: int = 30) -> KMPHyperparameters:
     )
 
 
-def _gmr_1d(x: np.ndarray, y: np.ndarray, s: np.ndarray, n_components: int,
-            seed: int) -> tuple[np.ndarray, np.ndarray]:
+def gmr_1d(x: np.ndarray, y: np.ndarray, s: np.ndarray, n_components: int,
+           seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Fit a GMM to (x, y) (T,) and condition it at inputs s (N,); return mean, variance (N,).
 
     The data are standardised before EM (velocity and torque scales differ by orders of
     magnitude) and the result is mapped back to physical units.
     """
-    from sklearn.mixture import GaussianMixture      # fitting only: loading a model needs no sklearn
+    from kvark_ros.core.residual.gmm import fit_mixture      # fitting only: loading a model needs no sklearn
     x_mean, x_std = x.mean(), x.std()
     y_mean, y_std = y.mean(), y.std()
     if y_std == 0.0:
         y_std = 1.0
     data = np.column_stack(((x - x_mean) / x_std, (y - y_mean) / y_std))
-    gmm = GaussianMixture(n_components=n_components, covariance_type="full",
-                          reg_covar=GMM_REG_COVAR, max_iter=GMM_MAX_ITER,
-                          random_state=seed).fit(data)
+    gmm = fit_mixture(data, n_components, seed)
     m_x, m_y = gmm.means_[:, 0], gmm.means_[:, 1]
     cov = gmm.covariances_
     c_xx, c_xy, c_yy = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
@@ -211,7 +208,7 @@ def fit_gmr_reference(qd: np.ndarray, tau_r: np.ndarray, n_components: int = 10,
     mu = np.empty_like(s)
     sigma2 = np.empty_like(s)
     for j in range(n_joints):
-        mu[j], sigma2[j] = _gmr_1d(qd[:, j], tau_r[:, j], s[j], n_components, seed)
+        mu[j], sigma2[j] = gmr_1d(qd[:, j], tau_r[:, j], s[j], n_components, seed)
     return GMRReference(s=s, mu=mu, sigma2=sigma2)
 
 
@@ -386,15 +383,57 @@ class KMPResidualModel:
         var = np.empty_like(qd)
         for start in range(0, qd.shape[0], BATCH_CHUNK):
             rows = slice(start, start + BATCH_CHUNK)
-            e = np.exp(self._neg_half_inv_ls2 * (qd[rows, :, None] - self._s) ** 2
-                       + self._neg_half_inv_ls2_z * (z[rows, :, None] - self._s2) ** 2)  # (t, n, N)
-            w = np.matmul(self._weights, e[..., None])[..., 0]  # (t, n, N+1)
+            e, w = self._batch_kernel(qd[rows], z[rows])
             mean[rows] = w[:, :, 0]  # eq. 22
             quad = np.einsum("tja,tja->tj", w[:, :, 1:], w[:, :, 1:])
             var[rows] = np.maximum(self._var_scale * (self._sigma_f2 - quad),  # eq. 23
                                    self._far_field_floor(e))  # far-field floor
         np.maximum(var, VARIANCE_FLOOR, out=var)
         return mean, var
+
+    def _batch_kernel(self, qd: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Unit kernel vectors e = k_*/σ_f² (t, n, N) of queries qd, z (t, n) (eq. 20) and w = W e (t, n, N+1)."""
+        e = np.exp(self._neg_half_inv_ls2 * (qd[:, :, None] - self._s) ** 2
+                   + self._neg_half_inv_ls2_z * (z[:, :, None] - self._s2) ** 2)
+        return e, np.matmul(self._weights, e[..., None])[..., 0]
+
+    @single_threaded
+    def _whitened_eigen(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per joint, Λ (n, N) and σ_f² Vᵀ D (n, N, N) of D K D = V Λ Vᵀ, D = Σ^{-1/2} (``lambda2_sweep``)."""
+        n, n_sup = self._s.shape
+        eigenvalues = np.empty((n, n_sup))
+        project = np.empty((n, n_sup, n_sup))
+        for j in range(n):
+            s, s2 = self._s[j], self._s2[j]
+            gram = self._sigma_f2[j] * self._unit_kernel(j, s[:, None], s2[:, None], s[None, :], s2[None, :])  # eq. 19
+            d = 1.0 / np.sqrt(self.reference.sigma2[j])
+            eigenvalues[j], v = np.linalg.eigh(d[:, None] * gram * d[None, :])  # D K D = V Λ Vᵀ
+            project[j] = self._sigma_f2[j] * v.T * d  # p = σ_f² Vᵀ D e = Vᵀ D k_*
+        return eigenvalues, project
+
+    def lambda2_sweep(self, qd: np.ndarray, q: np.ndarray | None, g: np.ndarray | None,
+                      lambda2: np.ndarray) -> Iterator[tuple[slice, np.ndarray, np.ndarray]]:
+        """For λ₂ calibration (docs/method.md §3.5): chunk by chunk of the queries qd, q, g (T, n) as in predict_batch,
+        the rows (a slice), the mean (t, n) and eq. 23's variance for every candidate ``lambda2`` (G,), (G, t, n), with
+        this model's other hyperparameters and the same floors.
+
+        One eigendecomposition per joint replaces a model per candidate: with D = Σ^{-1/2} and D K D = V Λ Vᵀ,
+        (K + λ₂Σ)⁻¹ = D V (Λ + λ₂ I)⁻¹ Vᵀ D, so k_*ᵀ(K + λ₂Σ)⁻¹k_* = Σᵢ pᵢ²/(Λᵢ + λ₂) with p = Vᵀ D k_*: O(N²) per
+        query, then O(N) per candidate. The mean (eq. 22) does not depend on λ₂.
+        """
+        qd = check_batch(qd, self.n_joints)
+        z = np.broadcast_to(self.second_input(q, g), qd.shape)
+        lambda2 = np.asarray(lambda2, dtype=np.float64)
+        eigenvalues, project = self._whitened_eigen()
+        inverse = 1.0 / (eigenvalues + lambda2[:, None, None])  # (Λ + λ₂ I)⁻¹, (G, n, N)
+        var_scale = self.n_support / lambda2[:, None, None]  # N/λ₂ of eq. 23
+        for start in range(0, qd.shape[0], BATCH_CHUNK):
+            rows = slice(start, start + BATCH_CHUNK)
+            e, w = self._batch_kernel(qd[rows], z[rows])
+            p = np.matmul(project, e[..., None])[..., 0]  # (t, n, N)
+            quad = np.matmul((p * p).transpose(1, 0, 2), inverse.transpose(1, 2, 0)).T  # Σᵢ pᵢ²/(Λᵢ + λ₂), (G, t, n)
+            var = np.maximum(var_scale * (self._sigma_f2 - quad), self._far_field_floor(e))  # eq. 23, floor
+            yield rows, w[:, :, 0], np.maximum(var, VARIANCE_FLOOR)  # eq. 22
 
     def with_hyperparameters(self, hyper: KMPHyperparameters) -> KMPResidualModel:
         """The same reference, inputs and metadata with other hyperparameters (λ₂ calibration)."""

@@ -16,36 +16,37 @@ All joints share N, so the model stays one batched array per joint.
 """
 from __future__ import annotations
 
-import warnings
-from typing import Sequence
+from concurrent.futures import Executor
+from typing import Callable, Sequence
 
 import numpy as np
 from scipy.special import logsumexp
 from sklearn.cluster import KMeans
-from sklearn.exceptions import ConvergenceWarning
-from sklearn.gaussian_process import GaussianProcessRegressor
-from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
-from sklearn.mixture import GaussianMixture
 
-from kvark_ros.core.residual.common import check_training_data, single_threaded
-from kvark_ros.core.residual.gp import hyperparameters_from_gp
+from kvark_ros.core.residual.common import check_training_data, single_threaded, submit_joints
+from kvark_ros.core.residual.gmm import fit_mixture
+from kvark_ros.core.residual.gp import gmr_sample_noise, kmp_hyperparameters_of_joint
+from kvark_ros.core.residual.gp_fit import fit_gp
 from kvark_ros.core.residual.kmp import (
-    GMM_MAX_ITER,
-    GMM_REG_COVAR,
     GMR_VARIANCE_FLOOR_ABS,
     GMR_VARIANCE_FLOOR_REL,
     INPUT_KINDS,
     GMRReference,
     KMPHyperparameters,
     KMPResidualModel,
-    fit_gmr_reference,
+    gmr_1d,
 )
 
-GP_SUBSAMPLE = 500            # samples of the ARD GP fit (O(T³) per likelihood evaluation: ~1 s per joint)
+GP_SUBSAMPLE = 500            # samples of the ARD GP fit (O(T³) per likelihood evaluation: ~0.15 s per joint)
 GP_SAMPLES_BUDGET = 400       # GMR samples of the q̇-only GP fit, spread over the N support points
+GP_REFERENCE_COMPONENTS = 10  # GMM components of the reference the q̇-only GP samples (hyperparameters_from_gp's)
 # Length-scale bounds of the ARD fit, in standardised input units: below 0.05 no two support points
 # see each other (N ≤ 100 over a few standard deviations), above 20 an input is irrelevant.
 ARD_LENGTH_BOUNDS = (0.05, 20.0)
+ARD_AMPLITUDE_BOUNDS = (1e-4, 1e2)     # σ_f² and σ_n² of the ARD fit, in units of the residual's mean square
+ARD_NOISE_BOUNDS = (1e-6, 1e1)
+# One joint's fit: its GMR reference s, μ, σ², s2 (N,) and hyperparameters ℓ, ℓ₂, σ_f², λ₁.
+JointFit = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float, float, float]
 
 
 def second_inputs(kinds: Sequence[str], q: np.ndarray, g: np.ndarray) -> np.ndarray:
@@ -69,8 +70,7 @@ def _gmr_2d(x: np.ndarray, y: np.ndarray, n_support: int, n_components: int,
     y_mean, y_std = y.mean(), y.std() or 1.0
     xs = (x - x_mean) / x_std
     support = KMeans(n_support, n_init=3, random_state=seed).fit(xs).cluster_centers_
-    gmm = GaussianMixture(n_components=n_components, covariance_type="full", reg_covar=GMM_REG_COVAR,
-                          max_iter=GMM_MAX_ITER, random_state=seed).fit(np.column_stack((xs, (y - y_mean) / y_std)))
+    gmm = fit_mixture(np.column_stack((xs, (y - y_mean) / y_std)), n_components, seed)
     log_h = np.empty((n_support, n_components))
     cond_mean = np.empty((n_support, n_components))
     cond_var = np.empty(n_components)
@@ -91,59 +91,74 @@ def _gmr_2d(x: np.ndarray, y: np.ndarray, n_support: int, n_components: int,
 
 def _ard_hyperparameters(x: np.ndarray, y: np.ndarray, sigma2: np.ndarray, seed: int) -> tuple[float, ...]:
     """(length_scale, length_scale2, sigma_f2, lambda1) of a two-input joint from a zero-mean ARD SE GP
-    fitted to a subsample of (x (T, 2), y (T,)).
+    fitted to a subsample of (x (T, 2), y (T,)) (``fit_gp``, from σ_f² 1, ℓ 1, σ_n² 10⁻² in standardised units).
 
     λ₁ follows ``hyperparameters_from_gp``: each GMR mean stands for m = T/N samples, so
-    λ₁ mean(σ²) = σn²/m.
+    λ₁ mean(σ²) = σn²/m. An irrelevant input's length scale sits at the upper bound.
     """
     rng = np.random.default_rng(seed)
     rows = rng.choice(len(x), min(GP_SUBSAMPLE, len(x)), replace=False)
     x_std = x.std(axis=0)
     x_std[x_std == 0.0] = 1.0
     scale = float(np.sqrt(np.mean(y ** 2))) or 1.0
-    kernel = (ConstantKernel(1.0, (1e-4, 1e2)) * RBF(np.ones(2), ARD_LENGTH_BOUNDS)
-              + WhiteKernel(1e-2, (1e-6, 1e1)))
-    gpr = GaussianProcessRegressor(kernel=kernel, alpha=1e-10, n_restarts_optimizer=0, random_state=seed)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)   # an irrelevant input sits at the upper bound
-        gpr.fit(x[rows] / x_std, y[rows] / scale)
-    fitted = gpr.kernel_
-    length = np.asarray(fitted.k1.k2.length_scale) * x_std
-    noise = float(fitted.k2.noise_level) * scale ** 2
+    bounds = np.log([ARD_AMPLITUDE_BOUNDS, ARD_LENGTH_BOUNDS, ARD_LENGTH_BOUNDS, ARD_NOISE_BOUNDS])
+    fit = fit_gp(x[rows] / x_std, y[rows] / scale, np.log([1.0, 1.0, 1.0, 1e-2]), bounds, 0, seed)
+    length = fit.length_scale * x_std
+    noise = fit.noise_var * scale ** 2
     per_support = len(x) / len(sigma2)
-    return (float(length[0]), float(length[1]), float(fitted.k1.k1.constant_value) * scale ** 2,
+    return (float(length[0]), float(length[1]), fit.sigma_f2 * scale ** 2,
             noise / (per_support * float(np.mean(sigma2))))
+
+
+def fit_joint(kind: str, x: np.ndarray, z: np.ndarray, y: np.ndarray, n_components: int, n_support: int, seed: int,
+              joint: int, noise: np.ndarray) -> JointFit:
+    """One joint of ``fit_kmp`` with inputs ``kind``, from its q̇ x (T,) rad/s, second input z (T,) and τ_r y (T,) N·m:
+    the GMR reference (s, μ, σ², s2 (N,), eq. 18) and the hyperparameters (ℓ, ℓ₂, σ_f², λ₁).
+
+    A ``qd`` joint's GP is fitted on samples μᵢ + σᵢ ε of its own 10-component reference (hyperparameters_from_gp's
+    default), as paper v2 §V-B's GMR-GP; ε: noise (N, m), that joint's share of ``gmr_sample_noise``.
+    """
+    if kind == "qd":
+        s = np.linspace(x.min(), x.max(), n_support)
+        mu, sigma2 = gmr_1d(x, y, s, n_components, seed)
+        gp_mu, gp_sigma2 = gmr_1d(x, y, s, GP_REFERENCE_COMPONENTS, seed)
+        length, sigma_f2, lambda1 = kmp_hyperparameters_of_joint(s, gp_mu, gp_sigma2, noise, seed + joint)
+        return s, mu, sigma2, np.zeros(n_support), length, 1.0, sigma_f2, lambda1
+    x2 = np.column_stack((x, z))
+    support, mu, sigma2 = _gmr_2d(x2, y, n_support, n_components, seed)
+    length, length2, sigma_f2, lambda1 = _ard_hyperparameters(x2, y, sigma2, seed + joint)
+    return support[:, 0], mu, sigma2, support[:, 1], length, length2, sigma_f2, lambda1
 
 
 @single_threaded
 def fit_kmp(qd: np.ndarray, z: np.ndarray, tau_r: np.ndarray, inputs: Sequence[str], n_components: int,
-            n_support: int, seed: int = 0) -> KMPResidualModel:
+            n_support: int, seed: int = 0, executor: Executor | None = None) -> KMPResidualModel:
     """A KMP residual model with the given inputs per joint, from qd (T, n) rad/s, second inputs z (T, n)
-    (``second_inputs``) and tau_r (T, n) N·m; λ₂ is the default N·σ_f² (calibrate it afterwards)."""
+    (``second_inputs``) and tau_r (T, n) N·m; λ₂ is the default N·σ_f² (calibrate it afterwards). Each joint is
+    fitted by ``fit_joint``, in ``executor``'s workers when given (``start_kmp_fit``)."""
+    return start_kmp_fit(qd, z, tau_r, inputs, n_components, n_support, seed, executor)()
+
+
+@single_threaded
+def start_kmp_fit(qd: np.ndarray, z: np.ndarray, tau_r: np.ndarray, inputs: Sequence[str], n_components: int,
+                  n_support: int, seed: int = 0,
+                  executor: Executor | None = None) -> Callable[[], KMPResidualModel]:
+    """``fit_kmp`` in two steps: the joints' fits start in ``executor``'s workers (two-input joints, the longest,
+    first; or run here when it is None) and the returned function waits for them and builds the model, so that
+    several models can be fitted at once."""
     inputs = tuple(inputs)
     qd, tau_r = check_training_data(qd, tau_r, n_components, n_support)
-    n = qd.shape[1]
-    if "qd" in inputs:
-        reference = fit_gmr_reference(qd, tau_r, n_components=n_components, n_support=n_support, seed=seed)
-        # The GP of the q̇-only joints is fitted on its own 10-component reference (hyperparameters_from_gp's
-        # default), as paper v2 §V-B's GMR-GP.
-        hyper = hyperparameters_from_gp(qd, tau_r, n_support, seed,
-                                        samples_per_support=max(1, GP_SAMPLES_BUDGET // n_support))
-        if all(kind == "qd" for kind in inputs):
-            return KMPResidualModel(reference, hyper, inputs=inputs)
-        s, mu, sigma2, s2 = (np.array(a) for a in (reference.s, reference.mu, reference.sigma2, reference.s2))
-        ls, ls2, sf2, lam1 = (np.array(a) for a in (hyper.length_scale, hyper.length_scale2, hyper.sigma_f2,
-                                                     hyper.lambda1))
-    else:
-        s, mu, sigma2, s2 = (np.zeros((n, n_support)) for _ in range(4))
-        ls, ls2, sf2, lam1 = (np.ones(n) for _ in range(4))
-    for j, kind in enumerate(inputs):
-        if kind == "qd":
-            continue
-        x = np.column_stack((qd[:, j], z[:, j]))
-        support, mu[j], sigma2[j] = _gmr_2d(x, tau_r[:, j], n_support, n_components, seed)
-        s[j], s2[j] = support[:, 0], support[:, 1]
-        ls[j], ls2[j], sf2[j], lam1[j] = _ard_hyperparameters(x, tau_r[:, j], sigma2[j], seed + j)
-    hyper = KMPHyperparameters(length_scale=ls, sigma_f2=sf2, lambda1=lam1, lambda2=n_support * sf2,
-                               length_scale2=ls2)
-    return KMPResidualModel(GMRReference(s=s, mu=mu, sigma2=sigma2, s2=s2), hyper, inputs=inputs)
+    z = np.asarray(z, dtype=np.float64)
+    noise = gmr_sample_noise(qd.shape[1], n_support, max(1, GP_SAMPLES_BUDGET // n_support), seed)
+    order = sorted(range(len(inputs)), key=lambda j: inputs[j] == "qd")
+    pending = submit_joints(fit_joint, [(inputs[j], qd[:, j].copy(), z[:, j].copy(), tau_r[:, j].copy(), n_components,
+                                         n_support, seed, j, noise[j]) for j in order], executor)
+
+    def model() -> KMPResidualModel:
+        by_joint = dict(zip(order, pending()))
+        s, mu, sigma2, s2, length, length2, sigma_f2, lambda1 = (np.array(column) for column in
+                                                                zip(*(by_joint[j] for j in range(len(inputs)))))
+        hyper = KMPHyperparameters(length_scale=length, sigma_f2=sigma_f2, lambda1=lambda1,
+                                   lambda2=n_support * sigma_f2, length_scale2=length2)
+        return KMPResidualModel(GMRReference(s=s, mu=mu, sigma2=sigma2, s2=s2), hyper, inputs=inputs)
+    return model

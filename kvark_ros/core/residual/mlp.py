@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -20,6 +21,7 @@ from kvark_ros.core.residual.common import (
     VARIANCE_FLOOR,
     check_batch,
     check_samples,
+    map_joints,
     single_threaded,
 )
 from kvark_ros.core.residual.files import (
@@ -54,6 +56,18 @@ def _identity(x: np.ndarray) -> np.ndarray:
 # sklearn MLPRegressor's hidden activations, in place.
 _ACTIVATIONS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
     "tanh": _tanh, "relu": _relu, "logistic": _logistic, "identity": _identity}
+
+
+def _fit_joint(x: np.ndarray, y: np.ndarray, settings: dict) -> tuple[list[np.ndarray], list[np.ndarray], int]:
+    """One joint of ``MLPResidualModel.fit``: an MLPRegressor with ``settings`` trained on the standardised q̇ x (T, 1)
+    and τ_r y (T,); its weights, biases and epochs."""
+    from sklearn.exceptions import ConvergenceWarning       # fitting only: loading a model needs no sklearn
+    from sklearn.neural_network import MLPRegressor
+    net = MLPRegressor(**settings)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)  # max_epochs reached
+        net.fit(x, y)
+    return net.coefs_, net.intercepts_, int(net.n_iter_)
 
 
 class MLPResidualModel:
@@ -173,7 +187,7 @@ class MLPResidualModel:
     def fit(cls, qd: np.ndarray, tau_r: np.ndarray,
             hidden_layer_sizes: tuple[int, ...] = (30, 30), activation: str = "tanh",
             learning_rate: float = 1e-3, max_epochs: int = 300, batch_size: int = 512,
-            l2: float = 1e-4, tol: float = 0.0, seed: int = 0) -> MLPResidualModel:
+            l2: float = 1e-4, tol: float = 0.0, seed: int = 0, executor: Executor | None = None) -> MLPResidualModel:
         """Train one MLPRegressor per joint on standardised qd (T, n) rad/s -> tau_r (T, n) N·m.
 
         Adam with `learning_rate`, `max_epochs` epochs (earlier only if the training loss has
@@ -184,8 +198,6 @@ class MLPResidualModel:
         300 epochs are ~1800 Adam steps and leave the step at q̇ = 0 blurred (RMSE ≈ the noise
         level in our check); batch_size 128 fixed that.
         """
-        from sklearn.exceptions import ConvergenceWarning       # fitting only: loading a model needs no sklearn
-        from sklearn.neural_network import MLPRegressor
         if activation not in _ACTIVATIONS:
             raise ValueError(
                 f"activation must be one of {sorted(_ACTIVATIONS)}, got {activation!r}")
@@ -194,29 +206,19 @@ class MLPResidualModel:
         x_mean, x_scale = qd.mean(axis=0), qd.std(axis=0)
         y_mean, y_scale = tau_r.mean(axis=0), tau_r.std(axis=0)
         y_scale = np.where(y_scale > 0.0, y_scale, 1.0)
-        layers: list[list[np.ndarray]] = []
-        biases: list[list[np.ndarray]] = []
-        epochs = []
-        for j in range(n):
-            net = MLPRegressor(hidden_layer_sizes=tuple(hidden_layer_sizes), activation=activation,
-                               solver="adam", learning_rate_init=learning_rate,
-                               max_iter=max_epochs, batch_size=min(batch_size, n_samples),
-                               alpha=l2, tol=tol, n_iter_no_change=10, shuffle=True,
-                               random_state=seed + j)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", ConvergenceWarning)  # max_epochs reached
-                net.fit(((qd[:, j] - x_mean[j]) / x_scale[j])[:, None],
-                        (tau_r[:, j] - y_mean[j]) / y_scale[j])
-            layers.append(net.coefs_)
-            biases.append(net.intercepts_)
-            epochs.append(int(net.n_iter_))
+        settings = dict(hidden_layer_sizes=tuple(hidden_layer_sizes), activation=activation, solver="adam",
+                        learning_rate_init=learning_rate, max_iter=max_epochs, batch_size=min(batch_size, n_samples),
+                        alpha=l2, tol=tol, n_iter_no_change=10, shuffle=True)
+        tasks = [(((qd[:, j] - x_mean[j]) / x_scale[j])[:, None], (tau_r[:, j] - y_mean[j]) / y_scale[j],
+                  {**settings, "random_state": seed + j}) for j in range(n)]
+        layers, biases, epochs = zip(*map_joints(_fit_joint, tasks, executor))
         coefs = [np.stack([layers[j][k] for j in range(n)]) for k in range(len(layers[0]))]
         intercepts = [np.stack([biases[j][k] for j in range(n)]) for k in range(len(biases[0]))]
         placeholder = np.ones(n)
         model = cls(coefs, intercepts, x_mean, x_scale, y_mean, y_scale, placeholder, activation)
         residual = tau_r - model.predict_batch(qd)[0]
         variance = np.maximum(np.mean(residual ** 2, axis=0), VARIANCE_FLOOR)
-        metadata = {"fit": {"n_samples": n_samples, "epochs": epochs,
+        metadata = {"fit": {"n_samples": n_samples, "epochs": list(epochs),
                             "learning_rate": learning_rate, "batch_size": batch_size, "l2": l2,
                             "seed": seed}}
         return cls(coefs, intercepts, x_mean, x_scale, y_mean, y_scale, variance, activation,

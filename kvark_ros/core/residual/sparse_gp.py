@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import os
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 import scipy.linalg
 
-from kvark_ros.core.residual.common import check_samples, single_threaded
+from kvark_ros.core.residual.common import check_samples, map_joints, single_threaded
 from kvark_ros.core.residual.files import (
     FORMAT_VERSION,
     ResidualModelError,
@@ -26,7 +27,7 @@ class SparseGPResidualModel(_KernelPredictor):
     """Sparse GP residual model of the GPADKF baseline (paper v2 §V-B, Wei et al. 2023).
 
     Per joint: M = 50 inducing inputs z (k-means of the training velocities), SE kernel with
-    hyperparameters fitted by an exact sklearn GP on a random subset (≤ 1000 points) of the
+    hyperparameters fitted by an exact GP (``gp_fit.fit_gp``) on a random subset (≤ 1000 points) of the
     raw data, and the FITC approximation (Snelson & Ghahramani 2006; `approximation="dtc"`
     gives DTC/projected process instead). With K_mm = L Lᵀ, V = L⁻¹ K_mn,
     Λ = diag(K_nn − VᵀV) + σn² (FITC) or σn² I (DTC), A = I + V Λ⁻¹ Vᵀ = L_A L_Aᵀ:
@@ -97,8 +98,9 @@ class SparseGPResidualModel(_KernelPredictor):
     @single_threaded
     def fit(cls, qd: np.ndarray, tau_r: np.ndarray, n_inducing: int = 50,
             n_hyper_subset: int = 1000, approximation: str = "fitc", seed: int = 0,
-            n_restarts: int = 1) -> SparseGPResidualModel:
-        """Fit to qd (T, n) rad/s, tau_r (T, n) N·m.
+            n_restarts: int = 1, executor: Executor | None = None) -> SparseGPResidualModel:
+        """Fit to qd (T, n) rad/s, tau_r (T, n) N·m, each joint (``_fit_joint``) in ``executor``'s workers when given
+        (``map_joints``).
 
         Inducing points: k-means (sklearn KMeans, 1-D) of each joint's velocities, sorted.
         k-means centres follow the data density only weakly (∝ density^(1/3) in 1-D), so
@@ -107,7 +109,6 @@ class SparseGPResidualModel(_KernelPredictor):
         random subset of min(T, n_hyper_subset) samples per joint, L-BFGS-B from the
         start ℓ = range/10 plus `n_restarts` random starts (each costs ~1 s at 1000 samples).
         """
-        from sklearn.cluster import KMeans          # fitting only: loading a model needs no sklearn
         if n_inducing < 1 or n_hyper_subset < 2:
             raise ValueError(f"n_inducing must be >= 1 and n_hyper_subset >= 2, got "
                              f"{n_inducing}, {n_hyper_subset}")
@@ -116,26 +117,15 @@ class SparseGPResidualModel(_KernelPredictor):
         qd, tau_r = check_samples(qd, tau_r, max(n_inducing, 5), "a sparse GP")
         n_samples, n = qd.shape
         rng = np.random.default_rng(seed)
-        inducing = np.empty((n, n_inducing))
-        mean_weights = np.empty((n, n_inducing))
-        chol_a = np.empty((n, n_inducing, n_inducing))
-        fits = []
+        tasks = []
         for j in range(n):
-            x, y = qd[:, j], tau_r[:, j]
-            n_distinct = np.unique(x).size
+            n_distinct = np.unique(qd[:, j]).size
             if n_distinct < n_inducing:
                 raise ValueError(f"joint {j}: only {n_distinct} distinct velocities, fewer than "
                                  f"the {n_inducing} inducing points")
-            km = KMeans(n_clusters=n_inducing, n_init=3, random_state=seed + j).fit(x[:, None])
-            z = np.sort(km.cluster_centers_[:, 0])
             subset = rng.choice(n_samples, size=min(n_samples, n_hyper_subset), replace=False)
-            span = x.max() - x.min()
-            fit = _fit_se_gp(x[subset], y[subset],
-                             (_MIN_LENGTH_SCALE_REL * span, _MAX_LENGTH_SCALE_REL * span),
-                             seed=seed + j, n_restarts=n_restarts)
-            fits.append(fit)
-            inducing[j] = z
-            mean_weights[j], chol_a[j] = _sparse_factors(x, y, z, fit, approximation)
+            tasks.append((qd[:, j].copy(), tau_r[:, j].copy(), subset, n_inducing, approximation, seed + j, n_restarts))
+        inducing, mean_weights, chol_a, fits = zip(*map_joints(_fit_joint, tasks, executor))
         hyper = GPHyperparameters(length_scale=[f.length_scale for f in fits],
                                   sigma_f2=[f.sigma_f2 for f in fits],
                                   noise_var=[f.noise_var for f in fits])
@@ -143,7 +133,7 @@ class SparseGPResidualModel(_KernelPredictor):
                             "seed": seed, "joints": [
                                 {"log_marginal_likelihood": f.log_marginal_likelihood}
                                 for f in fits]}}
-        return cls(inducing, mean_weights, chol_a, hyper, approximation, metadata)
+        return cls(np.array(inducing), np.array(mean_weights), np.array(chol_a), hyper, approximation, metadata)
 
     def save(self, directory: str | os.PathLike, metadata: dict | None = None) -> None:
         """Writes directory/sparse_gp.npz and directory/sparse_gp.yaml, each atomically."""
@@ -184,6 +174,18 @@ class SparseGPResidualModel(_KernelPredictor):
                        header.get("approximation"), metadata=header["metadata"])
         except ResidualModelError as exc:
             raise ResidualModelError(f"{npz_path}: {exc}") from exc
+
+
+def _fit_joint(x: np.ndarray, y: np.ndarray, subset: np.ndarray, n_inducing: int, approximation: str, seed: int,
+               n_restarts: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, _SEFit]:
+    """One joint of ``SparseGPResidualModel.fit`` from its q̇ x (T,) rad/s and τ_r y (T,) N·m: the sorted inducing
+    inputs z (M,), the mean weights c (M,), L_A (M, M) and the GP fitted on the rows ``subset``."""
+    from sklearn.cluster import KMeans          # fitting only: loading a model needs no sklearn
+    z = np.sort(KMeans(n_clusters=n_inducing, n_init=3, random_state=seed).fit(x[:, None]).cluster_centers_[:, 0])
+    span = x.max() - x.min()
+    fit = _fit_se_gp(x[subset], y[subset], (_MIN_LENGTH_SCALE_REL * span, _MAX_LENGTH_SCALE_REL * span),
+                     seed=seed, n_restarts=n_restarts)
+    return (z,) + _sparse_factors(x, y, z, fit, approximation) + (fit,)
 
 
 def _sparse_factors(x: np.ndarray, y: np.ndarray, z: np.ndarray, fit: _SEFit,

@@ -29,6 +29,8 @@ COMMANDS = (
     Command("train", "kvark_ros.tools.train", "train the residual models and filter tuning from contact-free bags"),
     Command("replay", "kvark_ros.tools.replay",
             "run a bag through observers; write an output bag, metrics, plots and a report"),
+    Command("evaluate", "kvark_ros.tools.evaluate",
+            "run many bags through observers on a Dask cluster; one table of every bag's metrics"),
     Command("benchmark", "kvark_ros.tools.benchmark",
             "simulate, train and compare every observer (writes results.json and report.md)"),
     Command("bench", "kvark_ros.tools.bench", "per-step latency of the estimator on a synthetic stream"),

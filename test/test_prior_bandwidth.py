@@ -7,12 +7,15 @@ import numpy as np
 import pytest
 
 from kvark_ros.core.estimator import Estimator
+from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.observers import make_observer
 from kvark_ros.core.observers.momentum_observers import MomentumNoise, torque_density_for_bandwidth
+from kvark_ros.core.training import train_model
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream
 
 STEP_JOINT, STEP_SIZE, STEP_AT = 1, 5.0, 3.0          # 5 N·m on joint 2 at t = 3 s
-VIBRATION_HZ, VIBRATION_AMPLITUDE = 8.0, 0.5          # unmodelled torque the residual model cannot know, N·m
+TORQUE_NOISE = 2.0                                    # N·m per sample at 500 Hz (q_p ≈ 0.008 N²·m²·s)
+MISFIT_STD, MISFIT_TIME = 0.3, 0.03                   # coloured torque the residual model cannot know: N·m, s
 
 
 def _settings(config, bandwidth: float):
@@ -51,21 +54,38 @@ def _run(panda, config, trained, stream) -> np.ndarray:
     return estimates
 
 
-def test_a_slower_prior_passes_less_vibration_and_still_follows_a_contact(panda, panda_config, panda_trained):
-    """A vibration the model does not know (8 Hz, 0.5 N·m on every joint) before and after a 5 N·m step."""
+def _coloured(shape: tuple[int, int], std: float, time_constant: float, dt: float, seed: int) -> np.ndarray:
+    """AR(1) noise of standard deviation ``std`` and correlation time ``time_constant`` s, sampled every dt s."""
+    rng = np.random.default_rng(seed)
+    phi = np.exp(-dt / time_constant)
+    drive = std * np.sqrt(1.0 - phi * phi) * rng.standard_normal(shape)
+    out = np.zeros(shape)
+    for k in range(1, shape[0]):
+        out[k] = phi * out[k - 1] + drive[k]
+    return out
+
+
+def test_a_slower_prior_passes_less_misfit_and_still_follows_a_contact(panda, panda_config):
+    """Torque noise as large as the real Panda's (2 N·m per sample), a coloured misfit the residual model cannot
+    know (0.3 N·m, 30 ms) before and after a 5 N·m step on joint 2."""
+    segments = []
+    for offset in range(2):
+        free = synthetic_stream(panda, 10.0, seed=3 + 1000 * offset, torque_noise_std=TORQUE_NOISE)
+        segments.append(EstimatorInputs(free.stamp, free.q, free.qd, free.tau_m, "synthetic", 0))
+    trained = train_model(panda, "panda", segments, baselines=False, residual_inputs="qd", log=lambda _line: None)
     step = np.zeros(panda.n)
     step[STEP_JOINT] = STEP_SIZE
-    stream = synthetic_stream(panda, 5.0, seed=11, external=step_torque(STEP_AT, step))
-    vibration = VIBRATION_AMPLITUDE * np.sin(2.0 * np.pi * VIBRATION_HZ * stream.stamp)
-    stream = replace(stream, tau_m=stream.tau_m + vibration[:, None])
+    stream = synthetic_stream(panda, 5.0, seed=11, external=step_torque(STEP_AT, step), torque_noise_std=TORQUE_NOISE)
+    misfit = _coloured(stream.tau_m.shape, MISFIT_STD, MISFIT_TIME, stream.stamp[1] - stream.stamp[0], seed=7)
+    stream = replace(stream, tau_m=stream.tau_m + misfit)
     free = (stream.stamp >= 1.0) & (stream.stamp < STEP_AT)
+    after = (stream.stamp >= STEP_AT + 0.1) & (stream.stamp < STEP_AT + 0.5)
     errors = {}
     for bandwidth in (50.0, 30.0):
-        estimates = _run(panda, _settings(panda_config, bandwidth), panda_trained, stream)
+        estimates = _run(panda, _settings(panda_config, bandwidth), trained, stream)
         errors[bandwidth] = np.sqrt(np.mean((estimates[free] - stream.tau_ext[free]) ** 2))
-        after = (stream.stamp >= STEP_AT + 0.1) & (stream.stamp < STEP_AT + 0.5)
-        # 100 ms after the step the VB and the onset detector have raised Σ_d: within 20 % of the step on average.
-        assert abs(np.mean(estimates[after, STEP_JOINT]) - STEP_SIZE) < 0.2 * STEP_SIZE, bandwidth
-    # A second-order prior at ω_p passes a tone at ω = 50 rad/s by about 1/(1 + (ω/ω_p)²)-ish: at 30 rad/s it must
-    # pass clearly less than at 50 (a quarter less leaves room for the VB's own adaptation to the tone).
-    assert errors[30.0] < 0.75 * errors[50.0], errors
+        # 100 ms after the step the VB and the onset detector have raised Σ_d: within 10 % of it on average
+        # (measured 2.4 % and 2.7 %: the misfit and the noise are about 8 % of the step within a sample).
+        assert abs(np.mean(estimates[after, STEP_JOINT]) - STEP_SIZE) < 0.1 * STEP_SIZE, bandwidth
+    # Measured 0.389 against 0.457 N·m (0.85): the bound leaves 0.07 for other BLAS/libm roundings of the same draws.
+    assert errors[30.0] < 0.92 * errors[50.0], errors

@@ -6,15 +6,19 @@ file) and writes ``results.json`` (``{"scenarios": {NAME: <metrics.json>}}``) an
 with tables in the spirit of paper v2 Tables III, IV, V, VII, VIII and IX. With ``--augment`` it
 also runs the model-gap workflow (``kvark diagnose`` on the training bags), trains on the augmented
 model and replays ``AUGMENTED_OBSERVERS`` again: ``results.json`` gains ``"augmented"``.
+
+The replays are ``kvark evaluate``'s tasks (one per test bag × observer) on a local Dask cluster, one worker
+process per core, with the saved model; each scenario's metrics.json, report.md and plots are then written
+here, from the observers' outputs the tasks return.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 from kvark_ros.core.config import EstimatorConfig, default_config_path, load_config, parse_observers
 from kvark_ros.core.files import write_text_atomically
@@ -23,8 +27,11 @@ from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.core.training import train_model
 from kvark_ros.io import write_run
 from kvark_ros.io.alignment import read_inputs
-from kvark_ros.tools.replay import replay
+from kvark_ros.tools.evaluate import Setup, dask_client, decoded, evaluate_bags, loaded, merge
 from kvark_ros.tools.report import metrics_table
+
+if TYPE_CHECKING:
+    from distributed import Client
 
 TEST_SCENARIOS = ("payload", "contact", "collision")
 ABLATIONS = ("kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "kvark")
@@ -194,27 +201,25 @@ def run(args: argparse.Namespace) -> int:
         print(line, flush=True)
 
     config = load_config(default_config_path(args.robot))
-    from kvark_ros.sim.plant import PLANT_DIR, OracleResidual, load_plant
-    from kvark_ros.sim.robots import robot_setup
-    from kvark_ros.sim.true_model import true_urdf
+    from kvark_ros.sim.plant import PLANT_DIR, load_plant
     plant_path = Path(args.plant) if args.plant else PLANT_DIR / f"{args.robot}_{DEFAULT_PLANT}.yaml"
-    spec = load_plant(plant_path, config.n_joints)
-    oracle = OracleResidual(spec, config.n_joints, urdf=true_urdf(robot_setup(args.robot), spec))
+    load_plant(plant_path, config.n_joints)      # a bad plant file fails here, not in the simulation or the oracle
     train_bags, test_bags = simulate_bags(args.robot, plan, out / "bags", args.seed, log, plant_path)
     robot = RobotModel.from_config(config)
     segments = [read_inputs(bag, config)[1] for bag in train_bags]
     log(f"[benchmark] training on {len(train_bags)} bags (nominal model)")
     trained = train_model(robot, config.robot, segments, seed=args.seed, log=log,
-                          info={"bags": [bag.name for bag in train_bags]})
+                          info={"bags": [bag.name for bag in train_bags]}, settings=config.filter)
     save_model(out / "model", trained)
     observers = parse_observers(args.observers, with_oracle=True)
-    results: dict[str, Any] = {"scenarios": {}}
-    for step, (scenario, bag) in enumerate(test_bags.items(), start=1):
-        log(f"[benchmark] replay {step}/{len(test_bags)}: {scenario} × {len(observers)} observers")
-        results["scenarios"][scenario] = replay(config, trained, bag, out / scenario, observers, oracle=oracle,
-                                                write_bag=False, log=log)
-    if args.augment:
-        results["augmented"] = augmented_run(config, robot, segments, test_bags, out, args.seed, log)
+    setup = Setup(str(default_config_path(args.robot).resolve()), str((out / "model").resolve()),
+                  plant=str(plant_path.resolve()))
+    results: dict[str, Any] = {}
+    with dask_client(None, None, len(test_bags) * len(observers), log) as client:
+        results["scenarios"] = replay_scenarios(client, setup, test_bags, observers, out, log)
+        if args.augment:
+            results["augmented"] = augmented_run(config, robot, segments, test_bags, out, args.seed, log,
+                                                 client, setup)
     write_text_atomically(out / "results.json", json.dumps(results, indent=2))
     write_report(out, results, trained.info, args.robot, plan, time.perf_counter() - started)
     for line in acceptance(results["scenarios"]):
@@ -225,18 +230,40 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def replay_scenarios(client: Client, setup: Setup, test_bags: Mapping[str, Path], observers: Sequence[str],
+                     out: Path, log) -> dict[str, Any]:
+    """Every observer on every test bag as ``kvark evaluate``'s tasks on ``client``'s cluster; then per scenario
+    what ``kvark replay`` writes into ``out/<scenario>``: metrics.json, report.md and the plots, the latter drawn
+    here from the observers' outputs the tasks return. Returns each scenario's metrics.json content."""
+    from kvark_ros.tools.report import write_replay_report
+    log(f"[benchmark] replaying {len(test_bags)} test bags × {len(observers)} observers")
+    bags = [str(bag) for bag in test_bags.values()]
+    tasks = evaluate_bags(client, setup, bags, observers, keep_runs=True, log=log)
+    failed = next((task for task in tasks if task.error is not None), None)
+    if failed is not None:
+        raise RuntimeError(f"replay of {failed.bag} with {failed.observer} failed: {failed.error}")
+    merged = merge(bags, observers, tasks)["bags"]
+    runs = {(task.bag, task.observer): task.run for task in tasks}
+    robot = loaded(setup)[2]
+    scenarios = {}
+    for scenario, bag in test_bags.items():
+        metrics = merged[str(bag)]
+        inputs, truth, _ = decoded(setup, str(bag))
+        (out / scenario).mkdir(parents=True, exist_ok=True)
+        write_text_atomically(out / scenario / "metrics.json", json.dumps(metrics, indent=2))
+        write_replay_report(out / scenario, metrics, robot, inputs, truth, [runs[str(bag), name] for name in observers])
+        scenarios[scenario] = metrics
+    return scenarios
+
+
 def augmented_run(config: EstimatorConfig, nominal: RobotModel, segments: list, test_bags: Mapping[str, Path],
-                  out: Path, seed: int, log) -> dict[str, Any]:
-    """Diagnose the training recordings on the ``nominal`` model, train on the augmented model, replay
-    the test bags with it."""
+                  out: Path, seed: int, log, client: Client, setup: Setup) -> dict[str, Any]:
+    """Diagnose the training recordings on the ``nominal`` model, train on the augmented model (saved to
+    ``out/model_augmented``), replay the test bags with it on ``client``'s cluster."""
     from kvark_ros.gap.diagnose import train_on_diagnosis
     log("[benchmark] diagnosing the training bags, training on the augmented model")
-    trained, summary = train_on_diagnosis(config, nominal, segments, out, baselines=False, seed=seed, log=log)
-    scenarios = {}
-    for step, (scenario, bag) in enumerate(test_bags.items(), start=1):
-        log(f"[benchmark] augmented replay {step}/{len(test_bags)}: {scenario} × {len(AUGMENTED_OBSERVERS)} "
-            "observers")
-        scenarios[scenario] = replay(config, trained, bag, out / "augmented" / scenario, list(AUGMENTED_OBSERVERS),
-                                     write_bag=False, log=log)
+    _, summary = train_on_diagnosis(config, nominal, segments, out, baselines=False, seed=seed, log=log)
+    augmented = replace(setup, model=str((out / "model_augmented").resolve()), plant=None)
+    scenarios = replay_scenarios(client, augmented, test_bags, AUGMENTED_OBSERVERS, out / "augmented", log)
     return {**summary, "scenarios": scenarios}
 

@@ -106,7 +106,10 @@ class ContactDetector:
 
     def update(self, stamp: float, tau: np.ndarray, covariance: np.ndarray) -> bool:
         """Test one estimate (stamp s, τ̂ (n,), S (n, n)); return the debounced contact flag."""
-        statistic = self.statistic_of(tau, covariance)
+        return self.decide(stamp, self.statistic_of(tau, covariance))
+
+    def decide(self, stamp: float, statistic: float | None) -> bool:
+        """The debounced flag from one sample's ``τ̂ᵀ S⁻¹ τ̂`` (``None``: S not finite positive definite, counted)."""
         if statistic is None:
             self.invalid_covariances += 1
             return self.flag
@@ -127,8 +130,8 @@ class CollisionDetector:
     """``max_j(|τ̂_j| − z σ_j) > collision_torque``, no debounce (module docstring).
 
     ``update`` returns the flag; ``excess`` is the last ``max_j(|τ̂_j| − z σ_j)`` (N·m), for
-    ``/diagnostics`` and for choosing ``collision_torque``. A covariance whose diagonal is not
-    finite leaves the flag unchanged.
+    ``/diagnostics`` and for choosing ``collision_torque``. A non-finite excess (a covariance
+    diagonal or τ̂ that is not finite) leaves the flag unchanged.
     """
 
     def __init__(self, confidence: float, collision_torque: float) -> None:
@@ -161,11 +164,14 @@ class CollisionDetector:
     def update(self, tau: np.ndarray, covariance: np.ndarray | None) -> bool:
         """Test one estimate: τ̂ (n,) N·m and S (n, n) N²·m² (``None``: σ = 0); return the flag."""
         if covariance is None:
-            excess = float(np.abs(tau).max())
-        else:       # np.maximum keeps a NaN variance NaN, and so the excess: the flag holds then
-            excess = float((np.abs(tau) - self.z * np.sqrt(np.maximum(np.diagonal(covariance), 0.0))).max())
-            if not math.isfinite(excess):
-                return self.flag
+            return self.decide(float(np.abs(tau).max()))
+        # np.maximum keeps a NaN variance NaN, and so the excess: the flag holds then
+        return self.decide(float((np.abs(tau) - self.z * np.sqrt(np.maximum(np.diagonal(covariance), 0.0))).max()))
+
+    def decide(self, excess: float) -> bool:
+        """The flag from one sample's ``max_j(|τ̂_j| − z σ_j)`` (N·m); a non-finite excess leaves it unchanged."""
+        if not math.isfinite(excess):
+            return self.flag
         self.excess = excess
         self.flag = excess > self.collision_torque
         return self.flag

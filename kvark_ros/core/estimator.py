@@ -6,16 +6,22 @@ are identical for identical inputs. Per sample: the observer's τ̂_ext, minus t
 (``kvark_ros.core.contact``). At run time the payload (``set_payload``), the tare
 (``start_tare``/``clear_tare``) and the run-time config keys (``configure``) may change between
 two samples; the filter continues.
+
+With ``filter.kernel: numba`` (a ``KVARKKernelFilter``) everything of a step but the pinocchio passes runs as one
+compiled kernel (``kvark_ros.core.step_kernel``); the numpy code below is the reference it is tested against.
 """
 from __future__ import annotations
 
+import math
 from collections import Counter
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
 
 from kvark_ros.core.augmentation import Augmentation, AugmentationError, load_augmentation
+from kvark_ros.core.calibration import CALIBRATED_OBSERVER
 from kvark_ros.core.config import EstimatorConfig
 from kvark_ros.core.contact import CollisionDetector, ContactDetector, contact_covariance
 from kvark_ros.core.model_store import TrainedModel, load_model
@@ -25,21 +31,8 @@ from kvark_ros.core.robot_model import RobotModel, condition_number, urdf_sha256
 from kvark_ros.core.tare import Tare
 
 
-@dataclass(frozen=True)
-class Estimate:
-    """One output sample; torque acting on the robot (docs/method.md §1.2).
-
-    tau_ext: (n,) N·m, tared (``Estimator.start_tare``); tau_cov: (n, n) N²·m²; wrench: (6,) [N, N·m]
-    at the end-effector frame origin, axes of ``wrench_frame`` (config ``wrench.frame``: ``base`` or
-    ``end_effector``); wrench_cov: (6, 6), same axes. The covariances are ``None`` for observers that
-    report no uncertainty. contact: the debounced contact flag (docs/method.md §7); collision: the
-    undebounced per-joint collision flag (``kvark_ros.core.contact``). ee_rotation: (3, 3) rotation of
-    the ee_frame axes in base axes, R (``v_base = R v_ee``), for ``wrench_in``. jacobian: (6, n) J in base
-    axes, the one the wrench came from (``jacobian_condition``); weak_directions: (6, k) unit wrench
-    directions (columns, ``wrench_frame`` axes) the joints cannot sense (σ_i < ``wrench.damping``), along
-    which wrench_cov carries the damping bias for the ``wrench.prior_*`` scale (docs/method.md §1.4.1);
-    k = 0 away from singular poses.
-    """
+class _EstimateFields(NamedTuple):
+    """The fields of an ``Estimate`` (a tuple: immutable and cheap to build per sample)."""
 
     stamp: float
     tau_ext: np.ndarray
@@ -52,6 +45,23 @@ class Estimate:
     ee_rotation: np.ndarray
     jacobian: np.ndarray
     weak_directions: np.ndarray
+
+
+class Estimate(_EstimateFields):
+    """One output sample; torque acting on the robot (docs/method.md §1.2). Its fields are a named tuple's:
+    immutable and cheap to build per sample (~4 k instructions; a frozen dataclass cost 17 k).
+
+    tau_ext: (n,) N·m, tared (``Estimator.start_tare``); tau_cov: (n, n) N²·m²; wrench: (6,) [N, N·m]
+    at the end-effector frame origin, axes of ``wrench_frame`` (config ``wrench.frame``: ``base`` or
+    ``end_effector``); wrench_cov: (6, 6), same axes. The covariances are ``None`` for observers that
+    report no uncertainty. contact: the debounced contact flag (docs/method.md §7); collision: the
+    undebounced per-joint collision flag (``kvark_ros.core.contact``). ee_rotation: (3, 3) rotation of
+    the ee_frame axes in base axes, R (``v_base = R v_ee``), for ``wrench_in``. jacobian: (6, n) J in base
+    axes, the one the wrench came from (``jacobian_condition``); weak_directions: (6, k) unit wrench
+    directions (columns, ``wrench_frame`` axes) the joints cannot sense (σ_i < ``wrench.damping``), along
+    which wrench_cov carries the damping bias for the ``wrench.prior_*`` scale (docs/method.md §1.4.1);
+    k = 0 away from singular poses.
+    """
 
     @cached_property
     def jacobian_condition(self) -> float:
@@ -150,6 +160,10 @@ class Estimator:
         # The trained static friction band widens the reported intervals at rest (core.stiction); None: not
         # identified (a model trained before it was) or filter.stiction_velocity 0.
         self._stiction = None if trained is None else trained.stiction
+        # kvark's reported covariance is scaled by the trained interval factors (docs/method.md §4.13); None: no
+        # factors (another observer, or a model trained before they were read).
+        self._interval_scale = (trained.interval_scale if trained is not None and observer.name == CALIBRATED_OBSERVER
+                                else None)
         # Pose inputs of the residual model in use (observer's or contact test's): g(q) costs a pinocchio pass.
         self._needs = observer.needs | frozenset(getattr(self._contact_residual, "needs", ()))
         self.contact = ContactDetector(robot.n, config.contact.confidence, config.contact.debounce)
@@ -158,6 +172,16 @@ class Estimator:
         self.counts: Counter[str] = Counter()
         self.unobservable_samples = 0     # estimates with a wrench direction the joints cannot sense (§1.4.1)
         self.status = Status.WARMUP
+        self._p_prev, self._u_prev = np.zeros(robot.n), np.zeros(robot.n)
+        # A compiled filter (filter.kernel: numba) runs the whole step compiled (core.compiled_step; imported here, so
+        # that the numpy path never loads numba).
+        self._compiled = None
+        if getattr(observer, "compiled", False):
+            from kvark_ros.core.compiled_step import CompiledStep
+            self._compiled = CompiledStep(robot, observer, self.tare, None if self._stiction is None
+                                          else self._stiction.band, None if self._interval_scale is None
+                                          else self._interval_scale.scale, config, self.collision.z)
+            self._p_prev, self._u_prev = self._compiled.previous
         self.reset()
 
     @classmethod
@@ -182,6 +206,11 @@ class Estimator:
         robot = RobotModel.from_config(config, model_augmentation(config, trained), urdf)
         return cls(config, robot, make_observer(name, trained, config.filter, oracle), trained)
 
+    @property
+    def compiled(self) -> bool:
+        """Whether ``step`` runs as the compiled kernel (``filter.kernel: numba`` with a K-VARK momentum filter)."""
+        return self._compiled is not None
+
     def configure(self, config: EstimatorConfig) -> None:
         """Apply a config whose run-time keys changed (config_schema.KEYS ``runtime``), from the next sample.
 
@@ -200,6 +229,8 @@ class Estimator:
         if config.payload != self.robot.payload:
             self.robot.set_payload(config.payload)
         self.config = config
+        if self._compiled is not None:
+            self._compiled.configure(config, self.collision.z)
 
     def set_payload(self, payload: Payload | None) -> None:
         """Replace the known payload at the flange (``None``: none) from the next sample; the filter continues.
@@ -232,8 +263,8 @@ class Estimator:
         self.collision.reset()
         self.tare.interrupt("the filter restarted")
         self._stamp: float | None = None
-        self._p_prev = np.zeros(self.robot.n)
-        self._u_prev = np.zeros(self.robot.n)
+        self._p_prev[:] = 0.0
+        self._u_prev[:] = 0.0
 
     def continue_from(self, other: "Estimator") -> None:
         """Continue from ``other``'s state, so that swapping it for this one changes no output (model reload).
@@ -251,7 +282,7 @@ class Estimator:
                              f"'{theirs.name}' ({type(theirs).__name__})")
         mine.load_state(theirs.state())
         self._stamp = other._stamp
-        self._p_prev, self._u_prev = other._p_prev.copy(), other._u_prev.copy()
+        self._p_prev[:], self._u_prev[:] = other._p_prev, other._u_prev
         self.status = other.status
         self.contact.continue_from(other.contact)
         self.collision.continue_from(other.collision)
@@ -267,10 +298,14 @@ class Estimator:
         if q.shape != (n,) or qd.shape != (n,) or tau_m.shape != (n,):
             self._reject(Status.BAD_SHAPE)
             return None
-        # One reduction instead of three isfinite passes: NaN or Inf anywhere makes the sum non-finite, and
-        # so does |x| > ~1e154 (overflow); that is a rejection, not a warning on stderr.
-        with np.errstate(over="ignore", invalid="ignore"):
-            finite = np.isfinite(stamp + q @ q + qd @ qd + tau_m @ tau_m)
+        compiled = self._compiled
+        if compiled is not None:
+            finite = compiled.finite(stamp, q, qd, tau_m)
+        else:
+            # One reduction instead of three isfinite passes: NaN or Inf anywhere makes the sum non-finite, and
+            # so does |x| > ~1e154 (overflow); that is a rejection, not a warning on stderr.
+            with np.errstate(over="ignore", invalid="ignore"):
+                finite = np.isfinite(stamp + q @ q + qd @ qd + tau_m @ tau_m)
         if not finite:
             self._reject(Status.NON_FINITE)
             return None
@@ -284,41 +319,42 @@ class Estimator:
                 self.reset()
                 self._reject(Status.GAP_RESET)
                 previous, gap_reset = None, True
-        p, u = self.robot.momentum_terms(q, qd, tau_m)
-        p_prev, u_prev = self._p_prev, self._u_prev
-        self._stamp, self._p_prev, self._u_prev = stamp, p, u
         if previous is None:
+            if compiled is not None:
+                compiled.prime(q, qd, tau_m)
+            else:
+                self._p_prev, self._u_prev = self.robot.momentum_terms(q, qd, tau_m)
+            self._stamp = stamp
             if not gap_reset:
                 self._reject(Status.WARMUP)
             return None
+        self._stamp = stamp
+        if compiled is not None:
+            return self._step_compiled(stamp, stamp - previous, q, qd, tau_m)
+        p, u = self.robot.momentum_terms(q, qd, tau_m)
+        p_prev, u_prev = self._p_prev, self._u_prev
+        self._p_prev, self._u_prev = p, u
         g = self.robot.gravity(q) if "g" in self._needs else None
         tau_ext, tau_cov = self.observer.step(stamp - previous, qd, p, p_prev, u_prev, q, g)
         tau_ext = self.tare.apply(stamp, qd, tau_ext)         # τ̂ − offset (a non-finite τ̂ resets below)
         sticking = self._sticking_variance(qd)
-        if tau_cov is not None and sticking is not None:
-            tau_cov = tau_cov.copy()                           # the observer's own P stays as it is
-            tau_cov.flat[:: n + 1] += sticking                 # Cov τ̂ + diag σ²_s(q̇) (docs/method.md §4.11)
-        frame = self.config.wrench.frame
-        # One Jacobian per sample, in base axes: that pass also places the ee frame (data.oMf), whose rotation R
-        # gives the ee axes, F_ee = diag(Rᵀ, Rᵀ) F_base (the damped pseudo-inverse is rotation-covariant).
-        # That J also tells the weak directions (σ_i < δ); Σ_F carries the damping bias along them (§1.4.1).
-        settings = self.config.wrench
-        solution = self.robot.solve_wrench(q, tau_ext, tau_cov, settings.damping, "base",
-                                           (settings.prior_force, settings.prior_moment))
-        wrench, wrench_cov, weak = solution.wrench, solution.cov, solution.weak
-        rotation = self.robot.data.oMf[self.robot.ee_frame_id].rotation.copy()
-        if frame != "base":
-            wrench, wrench_cov = rotate_wrench(rotation.T, wrench, wrench_cov)
-            if weak.shape[1]:
-                weak = rotate_wrench(rotation.T, weak)[0]
-        total = tau_ext.sum() + (0.0 if tau_cov is None else tau_cov.sum() + wrench_cov.sum())
+        widened = reported = tau_cov                           # P of the tests, P the estimate reports
+        if tau_cov is not None:
+            if sticking is not None:
+                widened = tau_cov.copy()                       # the observer's own P stays as it is
+                widened.flat[:: n + 1] += sticking             # Cov τ̂ + diag σ²_s(q̇) (docs/method.md §4.11)
+            reported = widened
+            if self._interval_scale is not None and self.config.filter.interval_calibration == "trained":
+                reported = self._interval_scale.apply(tau_cov)     # diag(c) P diag(c), new (docs/method.md §4.13)
+                if sticking is not None:
+                    reported.flat[:: n + 1] += sticking
+        wrench, wrench_cov, weak, rotation, jacobian = self._solve_wrench(q, tau_ext, reported)
+        total = tau_ext.sum() + (0.0 if tau_cov is None else reported.sum() + wrench_cov.sum())
         if not np.isfinite(total):
-            self.reset()
-            self._reject(Status.DIVERGED_RESET)
-            return None
+            return self._diverged()
         self.status = Status.OK
         self.counts[Status.OK] += 1
-        covariance = self._test_covariance(q, qd, g, tau_cov, sticking)
+        covariance = self._test_covariance(q, qd, g, widened, sticking)
         contact = self.contact.flag if covariance is None else self.contact.update(stamp, tau_ext, covariance)
         if sticking is not None and covariance is not None:
             # The collision flag is a safety stop with its own absolute threshold: it keeps the unwidened σ, so a
@@ -328,8 +364,52 @@ class Estimator:
         collision = self.collision.update(tau_ext, covariance)
         if weak.shape[1]:
             self.unobservable_samples += 1
-        return Estimate(stamp, tau_ext, tau_cov, wrench, wrench_cov, contact, collision, frame, rotation,
-                        solution.jacobian, weak)
+        return Estimate(stamp, tau_ext, reported, wrench, wrench_cov, contact, collision, self.config.wrench.frame,
+                        rotation, jacobian, weak)
+
+    def _step_compiled(self, stamp: float, dt: float, q: np.ndarray, qd: np.ndarray,
+                       tau_m: np.ndarray) -> Estimate | None:
+        """The rest of ``step`` as one compiled kernel (core.step_kernel), with the reference's outcomes."""
+        weak, diverged, statistic, excess, tau_ext, tau_cov, wrench, wrench_cov, rotation, jacobian = (
+            self._compiled.step(stamp, dt, q, qd, tau_m, self.tare))
+        if weak:                  # a wrench direction the joints cannot sense: the reference's solution (§1.4.1)
+            wrench, wrench_cov, weak, _, _ = self._solve_wrench(q, tau_ext, tau_cov)
+            diverged = not np.isfinite(tau_ext.sum() + tau_cov.sum() + wrench_cov.sum())
+        else:
+            weak = self._compiled.no_weak
+        if diverged:
+            return self._diverged()
+        self.status = Status.OK
+        self.counts[Status.OK] += 1
+        contact = self.contact.decide(stamp, None if math.isnan(statistic) else statistic)
+        collision = self.collision.decide(excess)
+        if weak.shape[1]:
+            self.unobservable_samples += 1
+        return Estimate(stamp, tau_ext, tau_cov, wrench, wrench_cov, contact, collision, self.config.wrench.frame,
+                        rotation, jacobian, weak)
+
+    def _diverged(self) -> None:
+        """A non-finite estimate: restart the filter, reject the sample."""
+        self.reset()
+        self._reject(Status.DIVERGED_RESET)
+
+    def _solve_wrench(self, q: np.ndarray, tau_ext: np.ndarray, tau_cov: np.ndarray | None) -> tuple:
+        """F, Σ_F and the weak directions of τ̂ in the axes of ``wrench.frame``, R and J (docs/method.md §1.4-1.4.1).
+
+        One Jacobian per sample, in base axes: that pass also places the ee frame, whose rotation R gives the ee
+        axes, F_ee = diag(Rᵀ, Rᵀ) F_base (the damped pseudo-inverse is rotation-covariant). That J also tells the
+        weak directions (σ_i < δ); Σ_F carries the damping bias along them (§1.4.1).
+        """
+        settings = self.config.wrench
+        solution = self.robot.solve_wrench(q, tau_ext, tau_cov, settings.damping, "base",
+                                           (settings.prior_force, settings.prior_moment))
+        wrench, wrench_cov, weak = solution.wrench, solution.cov, solution.weak
+        rotation = self.robot.terms.ee_rotation.copy()
+        if settings.frame != "base":
+            wrench, wrench_cov = rotate_wrench(rotation.T, wrench, wrench_cov)
+            if weak.shape[1]:
+                weak = rotate_wrench(rotation.T, weak)[0]
+        return wrench, wrench_cov, weak, rotation, solution.jacobian
 
     def _sticking_variance(self, qd: np.ndarray) -> np.ndarray | None:
         """σ²_s(q̇) (n,) N²·m² of the trained static friction band, or None when off (core.stiction)."""

@@ -84,6 +84,16 @@ class WrenchSolution(NamedTuple):
         return condition_number(self.jacobian)
 
 
+class LiveTerms(NamedTuple):
+    """Views of a pinocchio ``Data``'s results, rewritten in place by every pass (pinocchio's functions return
+    copies; these are not): g (n,), rnea's τ (n,), the Coriolis matrix C (n, n) and the ee frame's rotation (3, 3)."""
+
+    gravity: np.ndarray
+    rnea: np.ndarray
+    coriolis: np.ndarray
+    ee_rotation: np.ndarray
+
+
 class RobotModelError(ValueError):
     """The URDF, a joint name or a frame name is unusable."""
 
@@ -171,6 +181,7 @@ class RobotModel:
             self._augment(augmentation)
         self._nominal_inertias = [pin.Inertia(inertia) for inertia in self.model.inertias]
         self.data = self.model.createData()
+        self.terms = LiveTerms(self.data.g, self.data.tau, self.data.C, self.data.oMf[self.ee_frame_id].rotation)
         self._zero = np.zeros(self.model.nv)
         self._eye6 = np.eye(6)
         self._no_weak = np.zeros((6, 0))
@@ -270,6 +281,19 @@ class RobotModel:
         if self.augmentation is not None and self.augmentation.torque_effects:
             u -= self.augmentation.joint_torque(q, qd, tau_m)
         return p, u
+
+    def compute_terms(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """The pinocchio passes of ``momentum_terms`` and ``jacobian``, for the compiled step (core.step_kernel).
+
+        g(q), rnea(q, 0, q̇) = M q̇ + g and C(q, q̇) are left in ``terms`` (with the ee rotation R); returns J (6, n)
+        of the ee frame origin in base axes.
+        """
+        q_model = q if self._q_offset is None else q - self._q_offset      # _true_q, inline: called per sample
+        model, data = self.model, self.data
+        pin.computeGeneralizedGravity(model, data, q_model)
+        pin.rnea(model, data, q_model, self._zero, qd)
+        pin.computeCoriolisMatrix(model, data, q_model, qd)
+        return pin.computeFrameJacobian(model, data, q_model, self.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)
 
     def gravity(self, q: np.ndarray) -> np.ndarray:
         """g(q): gravity torque (n,) N·m of the (augmented) model, an input of pose-aware residual models."""

@@ -103,6 +103,11 @@ class Tare:
             self.note = f"aborted after {self._count} samples: {reason}; the "
             self.note += "previous offset stays" if self.active else "estimate stays untared"
 
+    def track(self, qd: np.ndarray) -> None:
+        """Keep the sample's q̇ (rad/s, not copied) for ``start``: all ``apply`` does while not averaging, bar the
+        subtraction (the compiled step subtracts ``offset`` itself)."""
+        self._qd = qd
+
     def apply(self, stamp: float, qd: np.ndarray, tau: np.ndarray) -> np.ndarray:
         """Feed one estimate (stamp s, q̇ (n,) rad/s, τ̂ (n,) N·m before the tare); return τ̂ − offset.
 

@@ -71,13 +71,21 @@ class KVARKMomentumFilter(KFMomentumObserver):
         per_sample = PerSample.of(settings, sample_period)
         self.vb_forgetting = per_sample.vb_forgetting                  # ρ
         vb = self.variant.vb
-        self.window = (WindowVB(noise.torque_density, per_sample.vb_window, per_sample.vb_forgetting,
-                                settings.vb_prior_dof) if vb and settings.vb_variant == "window" else None)
-        self.onset = (OnsetDetector(residual.n_joints, settings.onset_threshold, per_sample.onset_window)
+        self.window = (self._make_window(noise.torque_density, per_sample.vb_window, per_sample.vb_forgetting,
+                                         settings.vb_prior_dof) if vb and settings.vb_variant == "window" else None)
+        self.onset = (self._make_onset(residual.n_joints, settings.onset_threshold, per_sample.onset_window)
                       if vb and settings.onset_threshold > 0.0 else None)
         self._apply_runtime(settings)
         super().__init__(residual.n_joints, noise, initial_covariance=settings.initial_covariance, settings=settings)
         self.name = name or variant
+
+    def _make_window(self, prior_density: np.ndarray, window: int, forgetting: float, prior_dof: float) -> WindowVB:
+        """The windowed VB component (``WindowVB``'s arguments); the compiled subclass keeps its state packed."""
+        return WindowVB(prior_density, window, forgetting, prior_dof)
+
+    def _make_onset(self, n: int, threshold: float, window: int) -> OnsetDetector:
+        """The onset detector (``OnsetDetector``'s arguments); the compiled subclass keeps its state packed."""
+        return OnsetDetector(n, threshold, window)
 
     def _apply_runtime(self, settings: FilterSettings) -> None:
         per_sample = PerSample.of(settings, self.sample_period)

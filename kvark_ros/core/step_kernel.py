@@ -1,0 +1,493 @@
+"""The compiled kernels of ``filter.kernel: numba`` (issue 16): the K-VARK filter step and ``Estimator.step``.
+
+Why. One ``Estimator.step`` of the default filter cost ~1.04 M instructions, most of them numpy's per-call overhead
+on 6- and 7-element arrays. ``kvark_step`` runs the per-sample arithmetic of ``KVARKMomentumFilter.step``
+(docs/method.md §4.2-4.7) and ``estimate_step`` everything else of a step but the pinocchio passes (which stay
+Python calls, ``RobotModel.compute_terms``), each as one ``numba.njit`` call on preallocated buffers. The numpy
+code (``KVARKMomentumFilter``, ``Estimator``) stays the readable reference: the same equations, and the tests pin
+the kernels to it on the committed bags (``test/test_kernel.py``). ``observers.kvark_kernel`` (the filter) and
+``core.compiled_step`` (the estimator) hold the buffers and make the calls.
+
+``estimate_step`` computes, in the reference's order:
+- p = rnea(q, 0, q̇) − g = M q̇ (eq. 5) and u = Cᵀ q̇ − g + τ_m (− τ_aug) (eq. 7) from pinocchio's outputs (§2.1);
+- the filter step ``kvark_step`` on (h, q̇_k, p_k, u_{k−1}) (§4.2-4.7);
+- the tare offset (§4.10), the static friction band σ²_s(q̇) on Cov τ̂ (§4.11) and the interval factors c on the
+  reported Cov τ̂ = diag(c) P diag(c) + diag σ²_s (§4.13; the tests keep P + diag σ²_s);
+- the wrench ``F = J⁺ τ̂``, ``J⁺ = (J Jᵀ + δ² I)⁻¹ J`` and ``Σ_F = J⁺ P J⁺ᵀ`` (§1.4), with one Cholesky of
+  ``J Jᵀ − δ² I`` deciding whether some σ_i < δ (§1.4.1): then the caller takes the wrench from the reference
+  ``RobotModel.solve_wrench`` (weak directions, damping bias), which almost never happens where an arm works;
+- the contact statistic ``τ̂ᵀ S⁻¹ τ̂`` (§7.1-7.2) and the collision excess ``max_j(|τ̂_j| − z σ_j)`` (§4.10).
+The K-VARK momentum filter's P is diagonal (joints are independent 2-state filters, §4.2), so Cov τ̂, S and the
+collision's σ are diagonal: S's Cholesky factor is diag(√S_jj), and ``J⁺ P J⁺ᵀ = Σ_j P_jj J⁺_j J⁺_jᵀ``.
+
+Differences from the reference are rounding only: sums run in another order than BLAS's, ``exp`` is libm's rather
+than numpy's, the Cholesky factors are ours rather than LAPACK's (a pose whose smallest σ equals δ to ~1e-16 could
+be called regular by one and weak by the other). Measured on the committed bags: ≤ 1e-14 of each quantity's
+largest value.
+
+Arguments, not globals. Every array numba receives from Python costs ~1 k instructions to unbox, so the state and
+the constants come packed (``split_state``, ``split_constants``). And numba's cache (``cache=True``: ``__pycache__``
+next to this file, or ``NUMBA_CACHE_DIR``) is keyed on this file's content only: a function inlined from another
+module, or another module's constant frozen into the machine code, would stay stale in the cache when only that
+module changed. So all compiled code lives in this file and takes every number from its arguments or from this
+file's own constants (``test/test_kernel.py`` checks it). Arrays other than C-contiguous float64 ones (a strided
+view, float32) compile one more specialization, once.
+"""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numba
+import numpy as np
+
+# Rows of the per-joint constants (consts, (CONST_ROWS, n)).
+C_R, C_R_MIN, C_Q_P, C_Q_TAU, C_RESIDUAL_VAR, C_NEG_HALF_INV_LS2, C_SIGMA_F2, C_VAR_SCALE = range(8)
+CONST_ROWS = 8
+# Entries of the float parameters (params) and of the integer options (options): the filter's settings and the
+# numbers of other modules (WINDOW_MAX_RATIO, NIS_SCALE_BOUNDS, VARIANCE_FLOOR, WINDOW_SNAPSHOTS), which reach the
+# kernels as arguments (module docstring).
+(P_EWMA_RATE, P_NIS_RATE, P_FORGET, P_PRIOR_DOF, P_THRESHOLD, P_RHO, P_MAX_RATIO, P_NIS_LOW, P_NIS_HIGH,
+ P_VARIANCE_FLOOR) = range(10)
+PARAMS = 10
+(O_HETEROSCEDASTIC, O_EWMA, O_NIS, O_WINDOW, O_ONSET, O_KMP, O_STRIDE, O_SUPPORT, O_ONSETS, O_VB_IW, O_SMOOTHED,
+ O_ITERATIONS, O_SNAPSHOTS) = range(13)
+OPTIONS = 13
+# Rows of the per-joint state (vec, (VEC_ROWS, n)): the filter's, the per-sample VB's λ and Υ (paper, smoothed), the
+# window's q̂ and Υ, the residual's μ_*, σ²_*.
+V_P_HAT, V_TAU, V_A, V_B, V_C, V_R, V_NIS, V_SIGMA_D, V_VB_DOF, V_VB_SCALE, V_Q, V_SCALE, V_MEAN, V_VAR = range(14)
+VEC_ROWS = 14
+# Entries of the integer state (ints): the window's sample count, the onset ring's slot, the onset alarms.
+I_COUNT, I_SLOT, I_ALARMS = range(3)
+INTS = 3
+# estimate_step: bits of ``flags`` (what to run this call, and the estimator's settings).
+MOMENTUM, FILTER, POST, TARED, STICTION, SCALED, END_EFFECTOR, AUGMENTED = (1 << i for i in range(8))
+# Bits of the returned code.
+WEAK, DIVERGED = 1, 2
+# Rows of the estimator's per-joint buffer (rows, (ROWS, n)): p_{k−1}, u_{k−1}, p_k, u_k, τ_aug, F_s, the interval
+# factors c (docs/method.md §4.13).
+R_P_PREV, R_U_PREV, R_P, R_U, R_AUG, R_BAND, R_SCALE = range(7)
+ROWS = 7
+# Entries of the estimator's float parameters: wrench.damping δ, filter.stiction_velocity v_s, the collision's z.
+E_DAMPING, E_STICTION_VELOCITY, E_Z = range(3)
+E_PARAMS = 3
+
+
+def _jit(function: Callable) -> Callable:
+    """``numba.njit`` with numpy's IEEE semantics (inf/nan, no ZeroDivisionError) and numba's on-disk cache.
+
+    Where no cache directory is writable (no ``NUMBA_CACHE_DIR``, a read-only install, no writable home) numba
+    refuses ``cache=True`` when decorating; the kernels then compile at every start instead (~10 s)."""
+    try:
+        return numba.njit(cache=True, error_model="numpy")(function)
+    except RuntimeError:                            # numba: "cannot cache function …: no locator available"
+        return numba.njit(error_model="numpy")(function)
+
+
+@_jit
+def split_state(state: np.ndarray, n: int, snapshots: int,
+                onsets: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Views of the packed filter state: vec (VEC_ROWS, n); the window's S = ``snapshots`` snapshots z, zz, pz, tz
+    (4, n, S); the onset detector's ep, et, d, c (4, n, M), M = ``onsets``; and [dof, age (S,)] (1 + S,).
+    ``split_state.py_func`` gives the same views in Python (``observers.kvark_kernel.KernelState``)."""
+    end_vec = VEC_ROWS * n
+    end_snap = end_vec + 4 * n * snapshots
+    end_glr = end_snap + 4 * n * onsets
+    return (state[:end_vec].reshape((VEC_ROWS, n)), state[end_vec:end_snap].reshape((4, n, snapshots)),
+            state[end_snap:end_glr].reshape((4, n, onsets)), state[end_glr:end_glr + 1 + snapshots])
+
+
+def state_size(n: int, snapshots: int, onsets: int) -> int:
+    """Length of the packed float state of n joints, S snapshots and M onset hypotheses (``split_state``)."""
+    return VEC_ROWS * n + 4 * n * (snapshots + onsets) + 1 + snapshots
+
+
+@_jit
+def split_constants(constants: np.ndarray, n: int,
+                    support: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Views of the packed constants: consts (CONST_ROWS, n), params (PARAMS,), the KMP's support velocities
+    (n, N) and its transposed weights (n, N, N+1) (``kmp_predict``); N = ``support``."""
+    end_consts = CONST_ROWS * n
+    end_params = end_consts + PARAMS
+    end_support = end_params + n * support
+    return (constants[:end_consts].reshape((CONST_ROWS, n)), constants[end_consts:end_params],
+            constants[end_params:end_support].reshape((n, support)),
+            constants[end_support:end_support + n * support * (support + 1)].reshape((n, support, support + 1)))
+
+
+@_jit
+def kmp_predict(qd: np.ndarray, support: np.ndarray, weights_t: np.ndarray, consts: np.ndarray, floor: float,
+                mean: np.ndarray, var: np.ndarray) -> None:
+    """``KMPResidualModel.predict`` of a q̇-only model, into ``mean`` (n,) N·m and ``var`` (n,) N²·m².
+
+    ``qd`` (n,) rad/s; ``support`` the support velocities s (n, N); ``weights_t`` the model's weights
+    transposed, (n, N, N+1): column 0 σ_f² (𝒦 + λ₁Σ)⁻¹μ, columns 1..N σ_f² L⁻ᵀ with L Lᵀ = 𝒦 + λ₂Σ; ``floor``
+    the variance floor (``residual.common.VARIANCE_FLOOR``).
+    """
+    n, n_support = support.shape
+    rows = weights_t.shape[2]
+    w = np.empty(rows)
+    for j in range(n):
+        w[:] = 0.0
+        nearest = 0.0
+        for i in range(n_support):
+            e = qd[j] - support[j, i]
+            e = np.exp(e * e * consts[C_NEG_HALF_INV_LS2, j])          # k_*/σ_f², eq. 21
+            nearest = max(nearest, e)
+            for r in range(rows):                                      # W e, one row per r (vectorises over r)
+                w[r] += weights_t[j, i, r] * e
+        quad = 0.0
+        for r in range(1, rows):
+            quad += w[r] * w[r]
+        sigma_f2 = consts[C_SIGMA_F2, j]
+        mean[j] = w[0]                                                 # eq. 22
+        v = consts[C_VAR_SCALE, j] * (sigma_f2 - quad)                 # eq. 23
+        v = max(v, sigma_f2 * (1.0 - nearest * nearest))               # far-field floor (§3.6)
+        var[j] = max(v, floor)
+
+
+@_jit
+def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, state: np.ndarray, ints: np.ndarray,
+               constants: np.ndarray, options: np.ndarray) -> None:
+    """One sample of ``KVARKMomentumFilter.step``; updates the packed state in place.
+
+    Inputs: ``dt`` s; ``qd`` (n,) rad/s; ``p``, ``u_prev`` (n,) N·m·s, N·m. ``state``, ``ints``: the packed state
+    (``split_state``: p̂, τ̂, P = [[a, b], [b, c]], R_k, the NIS mean, Σ_d, the window's q̂, Υ and snapshots, the
+    residual model's μ_*, σ²_* (written here when ``options[O_KMP]``, else read), the onset detector's sums, the
+    counters); ``constants``, ``options``: ``split_constants`` and the O_* flags.
+    """
+    n = qd.shape[0]
+    vec, snap, glr, scal = split_state(state, n, options[O_SNAPSHOTS], options[O_ONSETS])
+    consts, params, support, weights_t = split_constants(constants, n, options[O_SUPPORT])
+    p_hat, tau, a, b, c = vec[V_P_HAT], vec[V_TAU], vec[V_A], vec[V_B], vec[V_C]
+    r_adaptive, nis_mean, sigma_d, q, scale = vec[V_R], vec[V_NIS], vec[V_SIGMA_D], vec[V_Q], vec[V_SCALE]
+    vb_dof, vb_scale = vec[V_VB_DOF], vec[V_VB_SCALE]
+    mean, var = vec[V_MEAN], vec[V_VAR]
+    z, zz, pz, tz = snap[0], snap[1], snap[2], snap[3]
+    ep, et, d, info = glr[0], glr[1], glr[2], glr[3]
+    age, dof = scal[1:], scal[0]
+    count, slot, alarms = ints[I_COUNT], ints[I_SLOT], ints[I_ALARMS]
+    if options[O_KMP]:
+        kmp_predict(qd, support, weights_t, consts, params[P_VARIANCE_FLOOR], mean, var)   # eqs. 21-23
+    heteroscedastic, ewma, nis = options[O_HETEROSCEDASTIC], options[O_EWMA], options[O_NIS]
+    window, onset, stride = options[O_WINDOW], options[O_ONSET], options[O_STRIDE]
+    vb_iw, smoothed = options[O_VB_IW], options[O_SMOOTHED]
+    passes, forget_vb = options[O_ITERATIONS] if vb_iw else 1, params[P_RHO]
+    hh = dt * dt
+    snapshots = z.shape[1]
+    column, closing, full, forget = 0, False, False, params[P_FORGET]
+    if window:
+        count += 1
+        for i in range(snapshots):
+            age[i] = age[i] + dt
+        closing = count % stride == 0
+        if closing:
+            column = (count // stride) % snapshots
+            full = count >= stride * snapshots                         # snapshot `column` spans a whole window
+            if full:
+                dof = forget * dof + 1.0 / snapshots                   # eq. 37
+    threshold = params[P_THRESHOLD]
+    gate = False
+    dof_pred = scale_pred = 0.0
+    for j in range(n):
+        tau_pred = tau[j]                                              # eq. 41
+        p_pred = p_hat[j] + dt * (u_prev[j] - mean[j] + tau_pred)     # eq. 28 as the momentum model
+        residual_var = var[j] if heteroscedastic else consts[C_RESIDUAL_VAR, j]
+        bj, hc = b[j], dt * c[j]                                       # F P Fᵀ, F = [[1, h], [0, 1]]
+        a_f = a[j] + dt * (bj + bj + hc) + consts[C_Q_P, j] * dt + hh * residual_var   # + w_p (eq. 30)
+        b_f, c_f = bj + hc, c[j]
+        nu = p[j] - p_pred                                             # innovation
+        R = r_adaptive[j] if ewma else consts[C_R, j]
+        if window:
+            for i in range(snapshots):
+                pz[j, i] = pz[j, i] + dt * tz[j, i]                    # Cov(p⁻, z) = (F P)_pz
+            sd = q[j] * dt                                             # Σ_d = q̂ h (§4.6)
+        elif vb_iw:                                                    # the IW prediction with forgetting (§4.4)
+            sd, dof_pred, scale_pred = sigma_d[j], forget_vb * (vb_dof[j] - 2.0) + 2.0, forget_vb * vb_scale[j]
+        else:
+            sd = consts[C_Q_TAU, j] * dt                               # Σ_d from training (eq. 32)
+            if nis:
+                sd = sd * nis_mean[j]                                  # A4: Σ_d = α Σ_d0
+        for _ in range(passes):                                        # M VB passes re-read eq. 42 (§4.4)
+            q_a = sd * (hh / 3.0)                                      # (K2): q_τ h³/3, q_τ h²/2, q_τ h
+            a_m, b_m, c_m = a_f + q_a, b_f + sd * (dt / 2.0), c_f + sd
+            s = a_m + R                                                # (K3)
+            k1, k2, g = a_m / s, b_m / s, R / s
+            a[j] = g * (g * a_m) + k1 * (k1 * R)                       # (K5), Joseph form
+            b[j] = g * (b_m - k2 * a_m) + k1 * (k2 * R)
+            c[j] = c_m - k2 * (b_m + b_m - k2 * s)
+            p_hat[j] = p_pred + k1 * nu                                # (K4)
+            tau[j] = tau_pred + k2 * nu
+            if vb_iw:
+                if smoothed:                                           # E[(τ_k − τ_k−1)² | y_1:k], lag-one RTS (§4.5)
+                    r = bj + dt * c_f
+                    w_hat = (k2 - r / s) * nu
+                    increment = w_hat * w_hat + c[j] - c_f - r * r / s + 2.0 * k2 * r
+                    increment = 0.0 if increment < 0.0 else increment
+                else:
+                    e = tau[j] - tau_pred                              # eq. 34
+                    increment = e * e + c[j]                           # eq. 38 as written
+                vb_dof[j] = dof_pred + 1.0                             # eq. 37
+                vb_scale[j] = scale_pred + increment                   # eq. 38
+                sd = vb_scale[j] / (vb_dof[j] - 2.0)                   # eqs. 39-40 (n = 1 per joint)
+        if vb_iw:
+            sigma_d[j] = sd
+        if window:                                                     # snapshots: the same gain (§4.6)
+            for i in range(snapshots):
+                pzi = pz[j, i]
+                gain = pzi / s
+                z[j, i] = z[j, i] + gain * nu
+                zz[j, i] = zz[j, i] - pzi * gain
+                tz[j, i] = tz[j, i] - k2 * pzi
+                pz[j, i] = pzi - k1 * pzi
+            if closing:
+                q0 = consts[C_Q_TAU, j]
+                if full:
+                    delta = tau[j] - z[j, column]
+                    stat = (delta * delta + c[j] + zz[j, column] - 2.0 * tz[j, column]) / age[column]  # s_j
+                    scale[j] = forget * scale[j] + max(stat, 0.0) / snapshots                        # eq. 38
+                    prior = params[P_PRIOR_DOF]
+                    q[j] = min((prior * q0 + scale[j]) / (prior + dof), params[P_MAX_RATIO] * q0)   # eq. 39
+                z[j, column], zz[j, column] = tau[j], c[j]                 # new snapshot z_j = τ_k
+                pz[j, column], tz[j, column] = b[j], c[j]
+            sigma_d[j] = q[j] * dt
+        if onset:                                                      # GLR sums with this sample (§4.7)
+            nu_s, r_s = nu / s, R / s
+            for i in range(ep.shape[1]):
+                rho = ep[j, i]
+                d[j, i] += rho * nu_s
+                info[j, i] += rho * (rho / s)
+                et[j, i] -= k2 * rho                                   # e⁺ = e⁻ − K ρ
+                ep[j, i] = rho * r_s                                   # 1 − K_p = R / S
+                if d[j, i] * d[j, i] - threshold * info[j, i] > 0.0:
+                    gate = True
+        if ewma:                                                       # eq. 31 with eq. 16's correction
+            updated = r_adaptive[j] + params[P_EWMA_RATE] * (nu * nu - a_m - r_adaptive[j])
+            r_adaptive[j] = min(max(updated, consts[C_R_MIN, j]), consts[C_R, j])
+        if nis:                                                        # A4
+            updated = nis_mean[j] + params[P_NIS_RATE] * (nu * nu / s - nis_mean[j])
+            nis_mean[j] = min(max(updated, params[P_NIS_LOW]), params[P_NIS_HIGH])
+    if window and closing:
+        age[column] = 0.0
+    if onset:
+        alarms += _accept_jumps(gate, threshold, p_hat, tau, a, b, c, ep, et, d, info)
+        for j in range(n):
+            for i in range(ep.shape[1]):
+                ep[j, i] = ep[j, i] + dt * et[j, i]                    # e⁻_k+1 = F e⁺_k
+            ep[j, slot], et[j, slot], d[j, slot], info[j, slot] = 0.0, 1.0, 0.0, 0.0   # newest onset
+        slot = (slot + 1) % ep.shape[1]
+    ints[I_COUNT], ints[I_SLOT], ints[I_ALARMS], scal[0] = count, slot, alarms, dof
+
+
+@_jit
+def _accept_jumps(gate: bool, threshold: float, p_hat: np.ndarray, tau: np.ndarray, a: np.ndarray, b: np.ndarray,
+                  c: np.ndarray, ep: np.ndarray, et: np.ndarray, d: np.ndarray, info: np.ndarray) -> int:
+    """Accept the jumps whose ℓ_θ = d²/C exceeds the threshold (once any d² > threshold C) and correct the
+    state, x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ / C_θ; that joint's hypotheses restart. Returns the number of joints."""
+    if not gate:
+        return 0
+    accepted = 0
+    for j in range(tau.shape[0]):
+        best, theta = -np.inf, 0
+        for i in range(ep.shape[1]):
+            ratio = d[j, i] * d[j, i] / (info[j, i] + 1e-300)          # ℓ_θ (0 where no data yet)
+            if ratio > best:
+                best, theta = ratio, i
+        if not best > threshold:
+            continue
+        e_p, e_t, information = ep[j, theta], et[j, theta], info[j, theta]
+        size = d[j, theta] / information                               # Δ̂_θ
+        p_hat[j] += e_p * size
+        tau[j] += e_t * size
+        a[j] += e_p * e_p / information
+        b[j] += e_p * e_t / information
+        c[j] += e_t * e_t / information
+        ep[j, :], et[j, :], d[j, :], info[j, :] = 0.0, 0.0, 0.0, 0.0  # no hypothesis spans the correction
+        accepted += 1
+    return accepted
+
+
+@_jit
+def finite_sample(stamp: float, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> bool:
+    """Whether stamp + q·q + q̇·q̇ + τ_m·τ_m is finite: no NaN or Inf, no |x| > ~1e154 (the reference's test)."""
+    total = stamp
+    for j in range(q.shape[0]):
+        total += q[j] * q[j] + qd[j] * qd[j] + tau_m[j] * tau_m[j]
+    return math.isfinite(total)
+
+
+@_jit
+def _momentum(qd: np.ndarray, tau_m: np.ndarray, gravity: np.ndarray, rnea: np.ndarray, coriolis: np.ndarray,
+              rows: np.ndarray, augmented: bool) -> None:
+    """p and u of one sample into rows R_P, R_U (docs/method.md §2.1)."""
+    n = qd.shape[0]
+    for j in range(n):
+        rows[R_P, j] = rnea[j] - gravity[j]                            # eq. 5: rnea(q, 0, q̇) − g = M q̇
+        ctq = 0.0
+        for i in range(n):
+            ctq += coriolis[i, j] * qd[i]                              # (Cᵀ q̇)_j
+        rows[R_U, j] = ctq - gravity[j] + tau_m[j]                     # eq. 7
+        if augmented:
+            rows[R_U, j] -= rows[R_AUG, j]                             # τ_m − τ_aug (§2.2)
+
+
+@_jit
+def _cholesky(a: np.ndarray, factor: np.ndarray) -> bool:
+    """The lower Cholesky factor of the symmetric (m, m) ``a`` into ``factor``; False if ``a`` is not positive
+    definite (a pivot ≤ 0 or NaN), as LAPACK's dpotrf."""
+    m = a.shape[0]
+    for j in range(m):
+        pivot = a[j, j]
+        for k in range(j):
+            pivot -= factor[j, k] * factor[j, k]
+        if not pivot > 0.0:
+            return False
+        root = math.sqrt(pivot)
+        factor[j, j] = root
+        for i in range(j + 1, m):
+            value = a[i, j]
+            for k in range(j):
+                value -= factor[i, k] * factor[j, k]
+            factor[i, j] = value / root
+        for i in range(j):
+            factor[i, j] = 0.0
+    return True
+
+
+@_jit
+def _wrench(jac: np.ndarray, tau: np.ndarray, variance: np.ndarray, params: np.ndarray, rotation: np.ndarray,
+            end_effector: bool, wrench: np.ndarray, wrench_cov: np.ndarray) -> bool:
+    """F = J⁺ τ̂ and Σ_F = J⁺ diag(variance) J⁺ᵀ (docs/method.md §1.4, v2 eq. 39) in base axes, or in the ee axes
+    (``rotation`` R: F_ee = diag(Rᵀ, Rᵀ) F); returns whether some σ_i(J) < δ (§1.4.1: the caller takes the
+    reference's solution)."""
+    n = jac.shape[1]
+    damping = params[E_DAMPING]
+    delta2 = damping * damping
+    damped, shifted, factor, pinv = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, n))
+    for a in range(6):
+        for b in range(a + 1):
+            value = 0.0
+            for k in range(n):
+                value += jac[a, k] * jac[b, k]
+            damped[a, b] = damped[b, a] = shifted[a, b] = shifted[b, a] = value       # J Jᵀ
+        damped[a, a] += delta2
+        shifted[a, a] -= delta2
+    if not _cholesky(damped, factor):      # J Jᵀ + δ² I = L Lᵀ; fails only for δ = 0 at a singular pose: the caller
+        return True                        # then takes the reference's solution (which refuses it, LinAlgError)
+    for k in range(n):                                                 # J⁺ = (J Jᵀ + δ² I)⁻¹ J, column by column
+        for a in range(6):
+            value = jac[a, k]
+            for b in range(a):
+                value -= factor[a, b] * pinv[b, k]
+            pinv[a, k] = value / factor[a, a]
+        for a in range(5, -1, -1):
+            value = pinv[a, k]
+            for b in range(a + 1, 6):
+                value -= factor[b, a] * pinv[b, k]
+            pinv[a, k] = value / factor[a, a]
+    for a in range(6):
+        value = 0.0
+        for k in range(n):
+            value += pinv[a, k] * tau[k]
+        wrench[a] = value                                              # F = J⁺ τ̂
+        for b in range(a + 1):
+            value = 0.0
+            for k in range(n):
+                value += pinv[a, k] * variance[k] * pinv[b, k]
+            wrench_cov[a, b] = wrench_cov[b, a] = value                # J⁺ P J⁺ᵀ, P diagonal
+    weak = damping != 0.0 and not _cholesky(shifted, factor)          # σ_min(J) ≥ δ ⇔ J Jᵀ − δ² I ≻ 0
+    if end_effector:
+        _rotate(rotation, wrench, wrench_cov)
+    return weak
+
+
+@_jit
+def _rotate(rotation: np.ndarray, wrench: np.ndarray, wrench_cov: np.ndarray) -> None:
+    """F ← B F and Σ ← B Σ Bᵀ with B = diag(Rᵀ, Rᵀ): base axes to the ee axes (``Estimate.wrench_in``)."""
+    turned, work = np.zeros(6), np.empty((6, 6))
+    for a in range(6):
+        block = 3 * (a // 3)
+        for k in range(3):
+            turned[a] += rotation[k, a - block] * wrench[block + k]
+    wrench[:] = turned
+    for a in range(6):                                                 # work = B Σ
+        block = 3 * (a // 3)
+        for b in range(6):
+            value = 0.0
+            for k in range(3):
+                value += rotation[k, a - block] * wrench_cov[block + k, b]
+            work[a, b] = value
+    for a in range(6):                                                 # B Σ Bᵀ, symmetric by construction
+        for b in range(a + 1):
+            block = 3 * (b // 3)
+            value = 0.0
+            for k in range(3):
+                value += work[a, block + k] * rotation[k, b - block]
+            wrench_cov[a, b] = wrench_cov[b, a] = value
+
+
+@_jit
+def estimate_step(flags: int, dt: float, qd: np.ndarray, tau_m: np.ndarray, gravity: np.ndarray, rnea: np.ndarray,
+                  coriolis: np.ndarray, jac: np.ndarray, rotation: np.ndarray, rows: np.ndarray, offset: np.ndarray,
+                  params: np.ndarray, state: np.ndarray, ints: np.ndarray, constants: np.ndarray,
+                  options: np.ndarray, tau: np.ndarray, tau_cov: np.ndarray, wrench: np.ndarray,
+                  wrench_cov: np.ndarray) -> tuple[int, float, float]:
+    """One ``Estimator.step`` after its input checks and pinocchio passes (module docstring).
+
+    ``flags``: MOMENTUM (p, u from ``gravity`` g, ``rnea`` = M q̇ + g and ``coriolis`` C, kept in ``rows`` for the
+    next sample), FILTER (``kvark_step`` on the packed filter state ``state``, ``ints``, ``constants``,
+    ``options``), POST (the rest, into ``tau``, ``tau_cov``, ``wrench``, ``wrench_cov``), and the settings TARED
+    (subtract ``offset``), STICTION (widen by the band in ``rows[R_BAND]``), SCALED (report P scaled by
+    ``rows[R_SCALE]``), END_EFFECTOR (wrench in the axes of ``rotation``), AUGMENTED (subtract ``rows[R_AUG]`` =
+    τ_aug). ``jac``: J (6, n) in base axes; ``params``: δ,
+    v_s, z. Returns (code: WEAK | DIVERGED bits, the contact statistic (NaN: S not positive
+    definite), the collision excess (NaN: not finite)).
+    """
+    n = qd.shape[0]
+    if flags & MOMENTUM:
+        _momentum(qd, tau_m, gravity, rnea, coriolis, rows, flags & AUGMENTED != 0)
+    if flags & FILTER:
+        kvark_step(dt, qd, rows[R_P], rows[R_U_PREV], state, ints, constants, options)
+    if flags & MOMENTUM:
+        rows[R_P_PREV, :] = rows[R_P]
+        rows[R_U_PREV, :] = rows[R_U]
+    if not flags & POST:
+        return 0, np.nan, np.nan
+    vec = split_state(state, n, options[O_SNAPSHOTS], options[O_ONSETS])[0]
+    filtered, c, residual_var = vec[V_TAU], vec[V_C], vec[V_VAR]
+    band, factors, velocity, z = rows[R_BAND], rows[R_SCALE], params[E_STICTION_VELOCITY], params[E_Z]
+    variance = np.empty(n)
+    tau_cov[:, :] = 0.0
+    statistic, excess, total, definite = 0.0, -np.inf, 0.0, True
+    for j in range(n):
+        tau[j] = filtered[j] - offset[j] if flags & TARED else filtered[j]         # τ̂ − offset (§4.10)
+        sticking, widened = 0.0, c[j]                                           # P = diag(c) (§4.2)
+        if flags & STICTION:
+            ratio = qd[j] / velocity
+            sticking = band[j] * band[j] / 3.0 * np.exp(-(ratio * ratio))       # σ²_s = F_s²/3 e^{−(q̇/v_s)²} (§4.11)
+            widened += sticking
+        variance[j] = widened                                                   # reported Cov τ̂, Σ_F's source
+        if flags & SCALED:
+            variance[j] = c[j] * (factors[j] * factors[j]) + sticking           # diag(c) P diag(c) + σ²_s (§4.13)
+        tau_cov[j, j] = variance[j]
+        s_jj = widened + residual_var[j]                                        # S = P + diag σ²_r (§7.2)
+        if s_jj > 0.0:
+            scaled = tau[j] / math.sqrt(s_jj)                                   # L⁻¹ τ̂, L = diag(√S_jj)
+            statistic += scaled * scaled                                        # d² = τ̂ᵀ S⁻¹ τ̂ (§7.1)
+        else:
+            definite = False
+        unwidened = s_jj - sticking if flags & STICTION else s_jj               # the collision keeps σ unwidened
+        if unwidened < 0.0:                                                     # max(·, 0); a NaN stays NaN
+            unwidened = 0.0
+        joint = abs(tau[j]) - z * math.sqrt(unwidened)                          # |τ̂_j| − z σ_j (§4.10)
+        if math.isnan(joint) or joint > excess:                                 # a NaN stays: the flag holds
+            excess = joint
+        total += tau[j] + variance[j]
+    weak = _wrench(jac, tau, variance, params, rotation, flags & END_EFFECTOR != 0, wrench, wrench_cov)
+    for a in range(6):
+        for b in range(6):
+            total += wrench_cov[a, b]
+    code = (WEAK if weak else 0) | (0 if math.isfinite(total) else DIVERGED)
+    if not (definite and math.isfinite(statistic)):
+        statistic = np.nan
+    return code, statistic, excess

@@ -161,11 +161,16 @@ KEYS: tuple[Key, ...] = (
     _key("filter.onset_window_time", "number", 0.02,
          "s back the contact onset may lie (time / t_s hypotheses, at least 2)", **_unit(0.001, 1.0)),
     _key("filter.measurement", "choice", "momentum", "form of the filter: p measured (momentum) or the paper's eq. 28 (difference)", choices=MEASUREMENTS),
-    _key("filter.kernel", "choice", "numpy", "implementation of the momentum-form K-VARK step: numpy (the reference) "
-         "or numba (one compiled kernel, equal to rounding; observers/kvark_kernel.py)", choices=("numpy", "numba")),
+    _key("filter.kernel", "choice", "numba", "implementation of Estimator.step with a momentum-form K-VARK filter: "
+         "numba (the filter and the rest of the step as compiled kernels, equal to the reference to rounding; "
+         "core/step_kernel.py) or numpy (the reference); the difference form is numpy either way",
+         choices=("numpy", "numba")),
     _key("filter.stiction_velocity", "number", 0.05,
          "rad/s; below it a joint counts as sticking: its interval widens to the trained static friction band "
          "(docs/method.md §4.11; 0 = off)", runtime=True, **_unit(0.0, 10.0)),
+    _key("filter.interval_calibration", "choice", "trained",
+         "kvark's reported covariance: trained (scaled by the model's factors from contact-free training data, "
+         "docs/method.md §4.13) or off (the filter's own P)", runtime=True, choices=("trained", "off")),
     _key("filter.huang_tau", "number", 300.0, "prior strength τ of the huang variant",
          **_unit(0.0, 1e6, low_open=True)),
     _key("filter.ewma_time", "number", 0.2,

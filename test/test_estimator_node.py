@@ -459,14 +459,14 @@ def test_contact_flag_rises_after_the_debounce_and_falls_back(ros, make_node, co
     assert 0.5 < start < end < 1.8
     node = make_node()
     statistics = []
-    update = node._estimator.contact.update
+    decide = node._estimator.contact.decide          # both the compiled step and the reference end here
 
-    def recording_update(stamp, tau, covariance):
-        flag = update(stamp, tau, covariance)
+    def recording_decide(stamp, statistic):
+        flag = decide(stamp, statistic)
         statistics.append(node._estimator.contact.statistic)
         return flag
 
-    node._estimator.contact.update = recording_update
+    node._estimator.contact.decide = recording_decide
     feed(ros, bag_messages(ros, collision_bag))
     got = outputs(ros)
     flag = np.array(got.contact)

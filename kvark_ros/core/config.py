@@ -24,7 +24,8 @@ from kvark_ros.core.payload import Payload
 __all__ = ["NODE_NAME", "OBSERVER_NAMES", "WRENCH_FRAMES", "VB_VARIANTS", "MEASUREMENTS", "EXAMPLE_ROBOT_DATA_PREFIX",
            "ConfigError", "EstimatorConfig", "FilterSettings", "WrenchSettings", "InputSettings", "ContactSettings",
            "DiagnosticsSettings", "flatten_parameters", "config_from_parameters",
-           "parameter_defaults", "default_filter_settings", "load_config", "with_resolved_paths", "default_config_path", "parse_observers"]
+           "parameter_defaults", "default_filter_settings", "load_config", "with_resolved_paths", "default_config_path",
+           "parse_observers"]
 
 NODE_NAME = "kvark_estimator"
 EXAMPLE_ROBOT_DATA_PREFIX = "example-robot-data:"

@@ -308,7 +308,7 @@ def calibrate_intervals(trained: TrainedModel, data: TrainingData, settings: Fil
                            [seg.stamp for seg in data.segments], [seg.qd for seg in data.segments],
                            [seg.q for seg in data.segments], [dyn.p for dyn in data.dynamics],
                            [dyn.u for dyn in data.dynamics], [dyn.g for dyn in data.dynamics])
-    log(f"[train] kvark interval factors c (95 % of the contact-free τ̂ within ±1.96 c σ): "
+    log("[train] kvark interval factors c (95 % of the contact-free τ̂ within ±1.96 c σ): "
         + ", ".join(f"{name} {value:.2f}" for name, value in zip(trained.joint_names, scale.scale))
         + f" ({time.perf_counter() - started:.1f} s)")
     return replace(trained, interval_scale=scale)

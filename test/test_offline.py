@@ -481,9 +481,9 @@ def _frictionless(robot: RobotModel, duration: float, seed: int, external=None) 
 def frictionless(robot):
     """A model trained on two 3 s frictionless streams, with the three learned baselines.
 
-    train_model(baselines=True) costs about a minute here (mostly the sparse GP's exact
-    hyperparameter fit on 1000 points with restarts), so the baselines are fitted directly with
-    light settings on the same residuals and share K-VARK's covariance-matched tuning.
+    train_model(baselines=True) spends most of its time in the sparse GP's exact hyperparameter fit
+    with restarts, so the baselines are fitted directly with light settings on the same residuals and
+    share K-VARK's covariance-matched tuning.
     """
     from kvark_ros.core.residual import GMRGPResidualModel, MLPResidualModel, SparseGPResidualModel
     from kvark_ros.core.training import train_model, training_data

@@ -2,9 +2,10 @@
 
 ``Estimator`` builds a ``CompiledStep`` when its observer is a ``KVARKKernelFilter`` and hands it every accepted
 sample after the first: the pinocchio passes run from Python (``RobotModel.compute_terms``), the rest in one call
-of ``step_kernel.estimate_step`` on buffers allocated here once; only the sample's outputs (τ̂, Cov τ̂, F, Σ_F, R)
-are new arrays, because an ``Estimate`` is a snapshot its consumers keep (replay, the tests) or publish later (the
-node's ``/diagnostics``). The numpy code in ``Estimator`` is the reference (docs/method.md; ``test/test_kernel.py``).
+of ``step_kernel.estimate_step`` on buffers allocated here once (and ``weak_wrench`` at a pose with a direction the
+joints cannot sense); only the sample's outputs (τ̂, Cov τ̂, F, Σ_F, R, the weak directions) are new arrays, because
+an ``Estimate`` is a snapshot its consumers keep (replay, the tests) or publish later (the node's ``/diagnostics``).
+The numpy code in ``Estimator`` is the reference (docs/method.md; ``test/test_kernel.py``).
 """
 from __future__ import annotations
 
@@ -13,10 +14,10 @@ import numpy as np
 from kvark_ros.core.config import EstimatorConfig
 from kvark_ros.core.observers.kvark_kernel import KVARKKernelFilter
 from kvark_ros.core.robot_model import RobotModel
-from kvark_ros.core.step_kernel import (AUGMENTED, DIVERGED, E_DAMPING, E_PARAMS, E_STICTION_VELOCITY, E_Z,
-                                        END_EFFECTOR, FILTER, MOMENTUM, POST, R_AUG, R_BAND, R_P_PREV, R_SCALE,
-                                        R_U_PREV, ROWS, SCALED, STICTION, TARED, WEAK, estimate_step,
-                                        finite_sample)
+from kvark_ros.core.step_kernel import (AUGMENTED, DIVERGED, E_DAMPING, E_PARAMS, E_PRIOR_FORCE, E_PRIOR_MOMENT,
+                                        E_STICTION_VELOCITY, E_Z, END_EFFECTOR, FILTER, MOMENTUM, POST, R_AUG, R_BAND,
+                                        R_P_PREV, R_SCALE, R_U_PREV, ROWS, SCALED, SINGULAR, STICTION, TARED, WEAK,
+                                        estimate_step, finite_sample, weak_wrench)
 from kvark_ros.core.tare import Tare
 
 
@@ -57,11 +58,11 @@ class CompiledStep:
         self._compile()
 
     def configure(self, config: EstimatorConfig, z: float) -> None:
-        """Take the run-time keys wrench.damping, wrench.frame, filter.stiction_velocity and
-        filter.interval_calibration, and the collision's z."""
-        velocity = config.filter.stiction_velocity
-        self.params[E_DAMPING], self.params[E_STICTION_VELOCITY], self.params[E_Z] = (
-            config.wrench.damping, velocity, z)
+        """Take the run-time keys wrench.*, filter.stiction_velocity and filter.interval_calibration, and the
+        collision's z."""
+        velocity, wrench = config.filter.stiction_velocity, config.wrench
+        self.params[[E_DAMPING, E_PRIOR_FORCE, E_PRIOR_MOMENT, E_STICTION_VELOCITY, E_Z]] = (
+            wrench.damping, wrench.prior_force, wrench.prior_moment, velocity, z)
         self._flags = ((STICTION if self._band is not None and velocity != 0.0 else 0)
                        | (SCALED if self._scale is not None and config.filter.interval_calibration == "trained" else 0)
                        | (END_EFFECTOR if config.wrench.frame != "base" else 0)
@@ -74,8 +75,9 @@ class CompiledStep:
         self.prime(zeros, zeros, zeros)
         self.observer.prepare(0.002, zeros, zeros, zeros, zeros)
         outputs = np.empty(self.n), np.empty((self.n, self.n)), np.empty(6), np.empty((6, 6))
-        self._run(self._flags | MOMENTUM | FILTER | POST, 0.002, zeros, zeros, self.robot.compute_terms(zeros, zeros),
-                  np.eye(3), *outputs)
+        jac = self.robot.compute_terms(zeros, zeros)
+        self._run(self._flags | MOMENTUM | FILTER | POST, 0.002, zeros, zeros, jac, np.eye(3), *outputs)
+        weak_wrench(jac, zeros, np.eye(self.n), self.params, np.eye(3), False, *outputs[2:], np.empty((6, 6)))
         self.observer.prediction = None
 
     def _terms(self, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> np.ndarray:
@@ -97,8 +99,9 @@ class CompiledStep:
                   np.empty((n, n)), np.empty(6), np.empty((6, 6)))
 
     def step(self, stamp: float, dt: float, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray, tare: Tare) -> tuple:
-        """One sample after the first: (weak, diverged, contact statistic, collision excess, τ̂, Cov τ̂, F, Σ_F, R, J),
-        the arrays new (``estimate_step``'s outputs); ``tare`` averages or is tracked as in ``Tare.apply``."""
+        """One sample after the first: (singular, diverged, contact statistic, collision excess, τ̂, Cov τ̂, F, Σ_F,
+        R, J, weak directions), the arrays new; ``tare`` averages or is tracked as in ``Tare.apply``. ``singular``:
+        J Jᵀ + δ² I is not positive definite (δ = 0 at a singular pose), F and Σ_F are not set."""
         n, observer, terms = self.n, self.observer, self.robot.terms
         jac = self._terms(q, qd, tau_m)
         observer.prepare(dt, qd, self.rows[R_P_PREV], q, terms.gravity.copy() if "g" in observer.needs else None)
@@ -115,4 +118,11 @@ class CompiledStep:
             flags |= TARED
         code, statistic, excess = estimate_step(flags, dt, qd, tau_m, *self._pinocchio, jac, rotation, *self._buffers,
                                                 *outputs)             # not _run: one Python call less per sample
-        return (code & WEAK != 0, code & DIVERGED != 0, statistic, excess) + outputs + (rotation, jac)
+        weak, diverged = self.no_weak, code & DIVERGED != 0
+        if code & WEAK:         # σ_min(J) < δ (docs/method.md §1.4.1): the directions and the damping bias
+            tau, tau_cov, wrench, wrench_cov = outputs
+            directions = np.empty((6, 6))
+            count, finite = weak_wrench(jac, tau, tau_cov, self.params, rotation, self._flags & END_EFFECTOR != 0,
+                                        wrench, wrench_cov, directions)
+            weak, diverged = directions[:, :count], not finite
+        return (code & SINGULAR != 0, diverged, statistic, excess) + outputs + (rotation, jac, weak)

@@ -370,13 +370,11 @@ class Estimator:
     def _step_compiled(self, stamp: float, dt: float, q: np.ndarray, qd: np.ndarray,
                        tau_m: np.ndarray) -> Estimate | None:
         """The rest of ``step`` as one compiled kernel (core.step_kernel), with the reference's outcomes."""
-        weak, diverged, statistic, excess, tau_ext, tau_cov, wrench, wrench_cov, rotation, jacobian = (
+        singular, diverged, statistic, excess, tau_ext, tau_cov, wrench, wrench_cov, rotation, jacobian, weak = (
             self._compiled.step(stamp, dt, q, qd, tau_m, self.tare))
-        if weak:                  # a wrench direction the joints cannot sense: the reference's solution (§1.4.1)
+        if singular:              # wrench.damping 0 at a singular pose: the reference's answer (it refuses it)
             wrench, wrench_cov, weak, _, _ = self._solve_wrench(q, tau_ext, tau_cov)
             diverged = not np.isfinite(tau_ext.sum() + tau_cov.sum() + wrench_cov.sum())
-        else:
-            weak = self._compiled.no_weak
         if diverged:
             return self._diverged()
         self.status = Status.OK

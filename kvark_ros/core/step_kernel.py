@@ -14,8 +14,9 @@ the kernels to it on the committed bags (``test/test_kernel.py``). ``observers.k
 - the tare offset (§4.10), the static friction band σ²_s(q̇) on Cov τ̂ (§4.11) and the interval factors c on the
   reported Cov τ̂ = diag(c) P diag(c) + diag σ²_s (§4.13; the tests keep P + diag σ²_s);
 - the wrench ``F = J⁺ τ̂``, ``J⁺ = (J Jᵀ + δ² I)⁻¹ J`` and ``Σ_F = J⁺ P J⁺ᵀ`` (§1.4), with one Cholesky of
-  ``J Jᵀ − δ² I`` deciding whether some σ_i < δ (§1.4.1): then the caller takes the wrench from the reference
-  ``RobotModel.solve_wrench`` (weak directions, damping bias), which almost never happens where an arm works;
+  ``J Jᵀ − δ² I`` deciding whether some σ_i < δ (§1.4.1): then the caller adds ``weak_wrench``, which takes J's
+  SVD for the weak directions and adds the damping bias to Σ_F (a third of random Panda poses, most of the UR5's
+  bench stream);
 - the contact statistic ``τ̂ᵀ S⁻¹ τ̂`` (§7.1-7.2) and the collision excess ``max_j(|τ̂_j| − z σ_j)`` (§4.10).
 The K-VARK momentum filter's P is diagonal (joints are independent 2-state filters, §4.2), so Cov τ̂, S and the
 collision's σ are diagonal: S's Cholesky factor is diag(√S_jj), and ``J⁺ P J⁺ᵀ = Σ_j P_jj J⁺_j J⁺_jᵀ``.
@@ -62,22 +63,24 @@ I_COUNT, I_SLOT, I_ALARMS = range(3)
 INTS = 3
 # estimate_step: bits of ``flags`` (what to run this call, and the estimator's settings).
 MOMENTUM, FILTER, POST, TARED, STICTION, SCALED, END_EFFECTOR, AUGMENTED = (1 << i for i in range(8))
-# Bits of the returned code.
-WEAK, DIVERGED = 1, 2
+# Bits of the returned code: a direction with σ_i < δ (weak_wrench), a non-finite estimate, J Jᵀ + δ² I not positive
+# definite (δ = 0 at a singular pose: the reference refuses it).
+WEAK, DIVERGED, SINGULAR = 1, 2, 4
 # Rows of the estimator's per-joint buffer (rows, (ROWS, n)): p_{k−1}, u_{k−1}, p_k, u_k, τ_aug, F_s, the interval
 # factors c (docs/method.md §4.13).
 R_P_PREV, R_U_PREV, R_P, R_U, R_AUG, R_BAND, R_SCALE = range(7)
 ROWS = 7
-# Entries of the estimator's float parameters: wrench.damping δ, filter.stiction_velocity v_s, the collision's z.
-E_DAMPING, E_STICTION_VELOCITY, E_Z = range(3)
-E_PARAMS = 3
+# Entries of the estimator's float parameters: wrench.damping δ, wrench.prior_force, wrench.prior_moment,
+# filter.stiction_velocity v_s, the collision's z.
+E_DAMPING, E_PRIOR_FORCE, E_PRIOR_MOMENT, E_STICTION_VELOCITY, E_Z = range(5)
+E_PARAMS = 5
 
 
 def _jit(function: Callable) -> Callable:
     """``numba.njit`` with numpy's IEEE semantics (inf/nan, no ZeroDivisionError) and numba's on-disk cache.
 
     Where no cache directory is writable (no ``NUMBA_CACHE_DIR``, a read-only install, no writable home) numba
-    refuses ``cache=True`` when decorating; the kernels then compile at every start instead (~10 s)."""
+    refuses ``cache=True`` when decorating; the kernels then compile at every start instead (~13 s)."""
     try:
         return numba.njit(cache=True, error_model="numpy")(function)
     except RuntimeError:                            # numba: "cannot cache function …: no locator available"
@@ -355,26 +358,29 @@ def _cholesky(a: np.ndarray, factor: np.ndarray) -> bool:
 
 
 @_jit
-def _wrench(jac: np.ndarray, tau: np.ndarray, variance: np.ndarray, params: np.ndarray, rotation: np.ndarray,
-            end_effector: bool, wrench: np.ndarray, wrench_cov: np.ndarray) -> bool:
-    """F = J⁺ τ̂ and Σ_F = J⁺ diag(variance) J⁺ᵀ (docs/method.md §1.4, v2 eq. 39) in base axes, or in the ee axes
-    (``rotation`` R: F_ee = diag(Rᵀ, Rᵀ) F); returns whether some σ_i(J) < δ (§1.4.1: the caller takes the
-    reference's solution)."""
-    n = jac.shape[1]
-    damping = params[E_DAMPING]
-    delta2 = damping * damping
-    damped, shifted, factor, pinv = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, n))
+def _gram(jac: np.ndarray) -> np.ndarray:
+    """J Jᵀ (6, 6) of J (6, n)."""
+    gram = np.empty((6, 6))
     for a in range(6):
         for b in range(a + 1):
             value = 0.0
-            for k in range(n):
+            for k in range(jac.shape[1]):
                 value += jac[a, k] * jac[b, k]
-            damped[a, b] = damped[b, a] = shifted[a, b] = shifted[b, a] = value       # J Jᵀ
+            gram[a, b] = gram[b, a] = value
+    return gram
+
+
+@_jit
+def _pseudo_inverse(jac: np.ndarray, gram: np.ndarray, delta2: float, pinv: np.ndarray) -> bool:
+    """J⁺ = (J Jᵀ + δ² I)⁻¹ J (6, n) into ``pinv`` (v2 eq. 39) from ``gram`` = J Jᵀ, through a Cholesky factor;
+    False when J Jᵀ + δ² I is not positive definite (δ = 0 at a singular pose)."""
+    n = jac.shape[1]
+    damped, factor = gram.copy(), np.empty((6, 6))
+    for a in range(6):
         damped[a, a] += delta2
-        shifted[a, a] -= delta2
-    if not _cholesky(damped, factor):      # J Jᵀ + δ² I = L Lᵀ; fails only for δ = 0 at a singular pose: the caller
-        return True                        # then takes the reference's solution (which refuses it, LinAlgError)
-    for k in range(n):                                                 # J⁺ = (J Jᵀ + δ² I)⁻¹ J, column by column
+    if not _cholesky(damped, factor):
+        return False
+    for k in range(n):                                                 # L Lᵀ X = J, column by column
         for a in range(6):
             value = jac[a, k]
             for b in range(a):
@@ -385,20 +391,104 @@ def _wrench(jac: np.ndarray, tau: np.ndarray, variance: np.ndarray, params: np.n
             for b in range(a + 1, 6):
                 value -= factor[b, a] * pinv[b, k]
             pinv[a, k] = value / factor[a, a]
+    return True
+
+
+@_jit
+def _moments(pinv: np.ndarray, tau: np.ndarray, variance: np.ndarray, wrench: np.ndarray,
+             wrench_cov: np.ndarray) -> None:
+    """F = J⁺ τ̂ and Σ_F = J⁺ diag(variance) J⁺ᵀ (§1.4; P is diagonal, the module docstring), symmetric."""
+    n = pinv.shape[1]
     for a in range(6):
         value = 0.0
         for k in range(n):
             value += pinv[a, k] * tau[k]
-        wrench[a] = value                                              # F = J⁺ τ̂
+        wrench[a] = value
         for b in range(a + 1):
             value = 0.0
             for k in range(n):
                 value += pinv[a, k] * variance[k] * pinv[b, k]
-            wrench_cov[a, b] = wrench_cov[b, a] = value                # J⁺ P J⁺ᵀ, P diagonal
-    weak = damping != 0.0 and not _cholesky(shifted, factor)          # σ_min(J) ≥ δ ⇔ J Jᵀ − δ² I ≻ 0
+            wrench_cov[a, b] = wrench_cov[b, a] = value
+
+
+@_jit
+def _wrench(jac: np.ndarray, tau: np.ndarray, variance: np.ndarray, params: np.ndarray, rotation: np.ndarray,
+            end_effector: bool, wrench: np.ndarray, wrench_cov: np.ndarray) -> int:
+    """F = J⁺ τ̂ and Σ_F = J⁺ diag(variance) J⁺ᵀ (docs/method.md §1.4, v2 eq. 39) in base axes, or in the ee axes
+    (``rotation`` R: F_ee = diag(Rᵀ, Rᵀ) F); returns WEAK when some σ_i(J) < δ (§1.4.1: ``weak_wrench`` then
+    follows), SINGULAR when J⁺ does not exist, else 0."""
+    damping = params[E_DAMPING]
+    delta2 = damping * damping
+    gram, pinv = _gram(jac), np.empty((6, jac.shape[1]))
+    if not _pseudo_inverse(jac, gram, delta2, pinv):
+        return SINGULAR
+    _moments(pinv, tau, variance, wrench, wrench_cov)
+    for a in range(6):
+        gram[a, a] -= delta2
+    weak = damping != 0.0 and not _cholesky(gram, np.empty((6, 6)))   # σ_min(J) ≥ δ ⇔ J Jᵀ − δ² I ≻ 0
     if end_effector:
         _rotate(rotation, wrench, wrench_cov)
-    return weak
+    return WEAK if weak else 0
+
+
+@_jit
+def weak_wrench(jac: np.ndarray, tau: np.ndarray, tau_cov: np.ndarray, params: np.ndarray, rotation: np.ndarray,
+                end_effector: bool, wrench: np.ndarray, wrench_cov: np.ndarray,
+                directions: np.ndarray) -> tuple[int, bool]:
+    """``RobotModel.solve_wrench`` at a pose with weak directions (docs/method.md §1.4.1), after ``estimate_step``.
+
+    From J (6, n), τ̂ and the reported Cov τ̂ (diagonal): F = J⁺ τ̂, Σ_F = J⁺ P J⁺ᵀ + B Σ_prior Bᵀ (symmetrised) with
+    B = U_w diag(c) U_wᵀ, c_i = δ²/(σ_i² + δ²) over the left singular vectors u_i with σ_i < δ (σ_i = 0 for the
+    6 − n missing) and Σ_prior = diag(f², f², f², m², m², m²); those u_i into ``directions[:, :k]``. All in base
+    axes, or in the ee axes as ``_wrench``. Returns (k, whether τ̂, Cov τ̂ and Σ_F are finite).
+    """
+    n = jac.shape[1]
+    damping = params[E_DAMPING]
+    delta2 = damping * damping
+    variance, pinv = np.empty(n), np.empty((6, n))
+    for j in range(n):
+        variance[j] = tau_cov[j, j]
+    _pseudo_inverse(jac, _gram(jac), delta2, pinv)
+    _moments(pinv, tau, variance, wrench, wrench_cov)
+    u, sigma, _ = np.linalg.svd(jac)                                   # J = U diag(σ) Vᵀ, U (6, 6)
+    bias, shrink, k = np.zeros((6, 6)), np.empty(6), 0
+    for i in range(6):
+        strength = sigma[i] if i < sigma.shape[0] else 0.0
+        if strength < damping:
+            shrink[k] = delta2 / (strength * strength + delta2)         # c_i
+            directions[:, k] = u[:, i]
+            k += 1
+    for a in range(6):                                                 # B = U_w diag(c) U_wᵀ
+        for b in range(6):
+            for i in range(k):
+                bias[a, b] += directions[a, i] * shrink[i] * directions[b, i]
+    prior = np.empty(6)
+    prior[:3], prior[3:] = params[E_PRIOR_FORCE] ** 2, params[E_PRIOR_MOMENT] ** 2
+    for a in range(6):                                                 # + B Σ_prior Bᵀ (§1.4.1)
+        for b in range(6):
+            value = 0.0
+            for c in range(6):
+                value += bias[a, c] * prior[c] * bias[c, b]
+            wrench_cov[a, b] += value
+    for a in range(6):
+        for b in range(a):
+            wrench_cov[a, b] = wrench_cov[b, a] = 0.5 * (wrench_cov[a, b] + wrench_cov[b, a])
+    if end_effector:
+        _rotate(rotation, wrench, wrench_cov)
+        turned = np.empty(6)
+        for i in range(k):
+            for a in range(6):
+                block = 3 * (a // 3)
+                turned[a] = (rotation[0, a - block] * directions[block, i] + rotation[1, a - block]
+                             * directions[block + 1, i] + rotation[2, a - block] * directions[block + 2, i])
+            directions[:, i] = turned
+    total = 0.0
+    for j in range(n):
+        total += tau[j] + variance[j]
+    for a in range(6):
+        for b in range(6):
+            total += wrench_cov[a, b]
+    return k, math.isfinite(total)
 
 
 @_jit
@@ -439,9 +529,9 @@ def estimate_step(flags: int, dt: float, qd: np.ndarray, tau_m: np.ndarray, grav
     ``options``), POST (the rest, into ``tau``, ``tau_cov``, ``wrench``, ``wrench_cov``), and the settings TARED
     (subtract ``offset``), STICTION (widen by the band in ``rows[R_BAND]``), SCALED (report P scaled by
     ``rows[R_SCALE]``), END_EFFECTOR (wrench in the axes of ``rotation``), AUGMENTED (subtract ``rows[R_AUG]`` =
-    τ_aug). ``jac``: J (6, n) in base axes; ``params``: δ,
-    v_s, z. Returns (code: WEAK | DIVERGED bits, the contact statistic (NaN: S not positive
-    definite), the collision excess (NaN: not finite)).
+    τ_aug). ``jac``: J (6, n) in base axes; ``params``: δ, the wrench prior, v_s, z. Returns (code: WEAK |
+    DIVERGED | SINGULAR bits, the contact statistic (NaN: S not positive definite), the collision excess (NaN: not
+    finite)); with WEAK or SINGULAR, F and Σ_F are not final.
     """
     n = qd.shape[0]
     if flags & MOMENTUM:
@@ -483,11 +573,11 @@ def estimate_step(flags: int, dt: float, qd: np.ndarray, tau_m: np.ndarray, grav
         if math.isnan(joint) or joint > excess:                                 # a NaN stays: the flag holds
             excess = joint
         total += tau[j] + variance[j]
-    weak = _wrench(jac, tau, variance, params, rotation, flags & END_EFFECTOR != 0, wrench, wrench_cov)
+    code = _wrench(jac, tau, variance, params, rotation, flags & END_EFFECTOR != 0, wrench, wrench_cov)
     for a in range(6):
         for b in range(6):
             total += wrench_cov[a, b]
-    code = (WEAK if weak else 0) | (0 if math.isfinite(total) else DIVERGED)
+    code |= 0 if math.isfinite(total) else DIVERGED
     if not (definite and math.isfinite(statistic)):
         statistic = np.nan
     return code, statistic, excess

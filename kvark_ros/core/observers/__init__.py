@@ -43,12 +43,10 @@ class ObserverError(ValueError):
 def _kvark(variant: str, residual: ResidualPredictor, tuning: FilterTuning, trained: "TrainedModel",
            settings: FilterSettings, name: str) -> Observer:
     """The K-VARK filter in the configured measurement form (``filter.measurement``) and implementation
-    (``filter.kernel``: the numpy reference or the compiled kernel, which refuses what it does not cover)."""
+    (``filter.kernel``: the numpy reference or the compiled kernel; the difference form is numpy either way)."""
     form: type[KVARKMomentumFilter] = KVARKMomentumFilter
     if settings.kernel == "numba":          # imported here: numba loads (~0.2 s) only where it is chosen
-        from kvark_ros.core.observers.kvark_kernel import KVARKKernelFilter, kernel_problem
-        if problem := kernel_problem(variant, settings):
-            raise ObserverError(f"observer '{name}': {problem}")
+        from kvark_ros.core.observers.kvark_kernel import KVARKKernelFilter
         form = KVARKKernelFilter
     if settings.measurement == "difference":
         return KVARKFilter(variant, residual, tuning, settings, name=name, sample_period=trained.sample_period)

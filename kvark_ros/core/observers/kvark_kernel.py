@@ -45,15 +45,6 @@ from kvark_ros.core.step_kernel import (C_NEG_HALF_INV_LS2, C_Q_P, C_Q_TAU, C_R,
                                         V_VB_DOF, V_VB_SCALE, kvark_step, split_constants, split_state, state_size)
 
 
-def kernel_problem(variant: str, settings: FilterSettings) -> str | None:
-    """Why ``filter.kernel: numba`` cannot run the K-VARK ``variant`` with ``settings``, or None.
-
-    Nothing is refused: the kernel covers every momentum-form variant and VB reading (``vb_variant_problem`` refuses
-    ``huang`` there for both), and ``make_observer`` builds the numpy ``KVARKFilter`` for the difference form.
-    """
-    return None
-
-
 class KernelState:
     """The compiled filter's state: ``flat`` (float64, ``split_state``'s layout) and ``ints`` (int64: count, slot,
     alarms), with ``vec``, ``snap``, ``glr`` and ``scal`` the views ``split_state`` gives the kernel."""

@@ -46,7 +46,7 @@ from kvark_ros.core.robot_model import RobotModel, urdf_sha256
 from kvark_ros.io import BagError
 from kvark_ros.io.alignment import read_inputs
 from kvark_ros.tools.metrics import observer_metrics
-from kvark_ros.tools.replay import GroundTruth, ObserverRun, ground_truth, run_observer
+from kvark_ros.tools.replay import GroundTruth, ObserverRun, ground_truth, plant_oracle, run_observer
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -96,24 +96,12 @@ def _version(path: str | None) -> tuple:
         return ()
 
 
-def _oracle(config: EstimatorConfig, plant: str | None) -> ResidualPredictor | None:
-    """The plant's true residual for the oracle observer, as ``kvark replay --plant`` builds it; None without."""
-    if plant is None:
-        return None
-    from kvark_ros.sim.plant import OracleResidual, load_plant
-    from kvark_ros.sim.robots import ROBOTS, robot_setup
-    from kvark_ros.sim.true_model import true_urdf
-    spec = load_plant(plant, config.n_joints)
-    urdf = true_urdf(robot_setup(config.robot), spec) if config.robot in ROBOTS else None
-    return OracleResidual(spec, config.n_joints, urdf=urdf)
-
-
 @lru_cache(maxsize=2)
 def _loaded(setup: Setup, version: tuple) -> tuple[EstimatorConfig, TrainedModel, RobotModel,
                                                    ResidualPredictor | None]:
     config = load_config(setup.config)
     trained = load_model(setup.model, config.joint_names, urdf_sha256(config.urdf))
-    return config, trained, RobotModel.from_config(config, trained.augmentation), _oracle(config, setup.plant)
+    return config, trained, RobotModel.from_config(config, trained.augmentation), plant_oracle(config, setup.plant)
 
 
 def _setup_version(setup: Setup) -> tuple:

@@ -157,6 +157,19 @@ def _wrench_of_torque(robot: RobotModel, config: EstimatorConfig, q: np.ndarray,
                      if np.isfinite(tk).all() else np.full(6, np.nan) for qk, tk in zip(q, tau)])
 
 
+def plant_oracle(config: EstimatorConfig, plant: str | None) -> ResidualPredictor | None:
+    """The simulator plant's true residual for the oracle observer (``--plant``), on the plant's true rigid body when
+    the config is one of the simulator's robots; None without a plant file."""
+    if plant is None:
+        return None
+    from kvark_ros.sim.plant import OracleResidual, load_plant
+    from kvark_ros.sim.robots import ROBOTS, robot_setup
+    from kvark_ros.sim.true_model import true_urdf
+    spec = load_plant(plant, config.n_joints)
+    urdf = true_urdf(robot_setup(config.robot), spec) if config.robot in ROBOTS else None
+    return OracleResidual(spec, config.n_joints, urdf=urdf)
+
+
 def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: EstimatorInputs, name: str,
                  oracle: ResidualPredictor | None = None, tare_at: float | None = None,
                  truth_tau: np.ndarray | None = None) -> ObserverRun:
@@ -334,15 +347,7 @@ def run(args: argparse.Namespace) -> int:
         str(bag.get("name", bag) if isinstance(bag, dict) else bag) for bag in trained.info.get("bags") or []) or "?"
     which = "" if args.model else " (the config's model_dir)"
     print(f"[replay] URDF {config.urdf}; model {model_dir}{which}, trained on {source}", flush=True)
-    oracle = None
-    if args.plant:
-        from kvark_ros.sim.plant import OracleResidual, load_plant
-        from kvark_ros.sim.robots import ROBOTS, robot_setup
-        from kvark_ros.sim.true_model import true_urdf
-        spec = load_plant(args.plant, config.n_joints)
-        # the plant's true rigid body for the oracle, when the config is one of the simulator's robots
-        urdf = true_urdf(robot_setup(config.robot), spec) if config.robot in ROBOTS else None
-        oracle = OracleResidual(spec, config.n_joints, urdf=urdf)
+    oracle = plant_oracle(config, args.plant)
     observers = parse_observers(args.observers, oracle is not None and trained.augmentation is None)
     if oracle is not None and trained.augmentation is not None and args.observers == "all":
         print("[replay] oracle skipped: it runs on the plant's own rigid body and friction, and this "

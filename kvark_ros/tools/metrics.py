@@ -5,7 +5,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.stats import chi2, norm
+from scipy.special import ndtri
+
+from kvark_ros.core.contact import chi2_quantile
 
 Z95 = 1.96                                  # half-width of the 95 % interval in σ (coverage95, as it always was)
 LEVELS = (0.5, 0.8, 0.9, 0.95, 0.99)        # nominal coverages of the reliability table
@@ -103,11 +105,11 @@ def calibration_metrics(error: np.ndarray, std: np.ndarray, mahalanobis: np.ndar
     n = error.shape[1]
     inside = np.abs(error) <= Z95 * std
     finite = mahalanobis[np.isfinite(mahalanobis)] if mahalanobis is not None else np.zeros(0)
-    z = norm.ppf(0.5 + 0.5 * np.array(LEVELS))
+    z = ndtri(0.5 + 0.5 * np.array(LEVELS))
     joint = [float(np.mean(np.abs(error) <= level_z * std)) for level_z in z]
-    vector = [float(np.mean(finite <= chi2.ppf(level, n))) for level in LEVELS] if len(finite) else None
+    vector = [float(np.mean(finite <= chi2_quantile(level, n))) for level in LEVELS] if len(finite) else None
     return {"coverage95_per_joint": _rounded(inside.mean(axis=0)),
-            "vector_coverage95": _rounded(float(np.mean(finite <= chi2.ppf(0.95, n)))) if len(finite) else None,
+            "vector_coverage95": _rounded(float(np.mean(finite <= chi2_quantile(0.95, n)))) if len(finite) else None,
             "any_joint_miss_share": _rounded(float((~inside).any(axis=1).mean())),
             "any_joint_miss_nominal": _rounded(1.0 - 0.95 ** n),
             "reliability": {"nominal": list(LEVELS), "joint": _rounded(np.array(joint)),

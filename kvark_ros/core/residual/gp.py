@@ -44,7 +44,6 @@ from kvark_ros.core.residual.files import (
     read_model_header,
     save_model_pair,
 )
-from kvark_ros.core.residual.gp_fit import fit_gp
 from kvark_ros.core.residual.kmp import GMRReference, KMPHyperparameters, fit_gmr_reference
 
 __all__ = [
@@ -130,6 +129,7 @@ def _fit_se_gp(x: np.ndarray, y: np.ndarray, length_scale_bounds: tuple[float, f
     start = float(np.clip(0.1 * (x.max() - x.min()), low, high))
     theta0 = np.log([1.0, start, 1e-2])                      # σf², ℓ, σn² in the scaled units
     bounds = np.log([_AMPLITUDE_BOUNDS, (low, high), _NOISE_BOUNDS])
+    from kvark_ros.core.residual.gp_fit import fit_gp    # training only: scipy.optimize is not the node's
     fit = fit_gp(x[:, None], y / scale, theta0, bounds, n_restarts, seed)
     length_scale = float(fit.length_scale[0])
     return _SEFit(length_scale=length_scale,

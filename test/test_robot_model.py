@@ -76,6 +76,27 @@ def test_wrench_in_end_effector_axes_is_the_rotated_base_wrench(panda, rng):
     assert np.allclose(rotation @ local[3:], base[3:], atol=1e-9)
 
 
+@pytest.mark.parametrize("axes", ["base", "end_effector"])
+def test_wrist_wrenches_move_to_the_end_effector_as_pinocchio_moves_a_force(panda, rng, axes):
+    """The batched re-expression of a wrist F/T reading equals pinocchio's SE3 action sample by sample
+    (f_b = R_s f, m_b = R_s m + p_s × f_b, then about the ee origin), 1e-12 being rounding on N and N·m of order
+    10; a non-finite reading gives a NaN row, not a number."""
+    import pinocchio as pin
+    q = np.array([0.3, -0.3, 0.2, -2.2, 0.1, 1.9, 0.5]) + rng.normal(scale=0.3, size=(5, 7))
+    wrench = rng.normal(scale=10.0, size=(5, 6))
+    wrench[3, 4] = np.nan
+    moved = panda.wrenches_at_end_effector(q, "panda_link7", wrench, axes)
+    for k in (0, 1, 2, 4):
+        pin.framesForwardKinematics(panda.model, panda.data, q[k])
+        at_sensor = panda.data.oMf[panda.model.getFrameId("panda_link7")]
+        ee = panda.data.oMf[panda.ee_frame_id]
+        target = pin.SE3(np.eye(3), ee.translation) if axes == "base" else ee
+        expected = target.actInv(at_sensor.act(pin.Force(wrench[k, :3], wrench[k, 3:]))).vector
+        assert np.allclose(moved[k], expected, rtol=0.0, atol=1e-12)
+    assert np.isnan(moved[3]).all()
+    assert np.linalg.norm(moved[0, 3:] - wrench[0, 3:]) > 0.1      # the frames differ: the moment does move
+
+
 def test_damping_shrinks_the_wrench_near_a_singularity(panda):
     q = np.zeros(7)                                   # stretched-out arm: J is rank deficient
     tau = np.ones(7)

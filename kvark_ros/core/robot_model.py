@@ -59,10 +59,19 @@ def flange_link_parameters(model: pin.Model, flange_frame_id: int, change: np.nd
     return total
 
 
+def condition_numbers(jacobians: np.ndarray) -> np.ndarray:
+    """κ = σ_max/σ_min of each 6×n Jacobian of a (T, 6, n) stack (∞ for n < 6 or σ_min = 0), one batched SVD;
+    the same in base and ee axes."""
+    sigma = np.linalg.svd(jacobians, compute_uv=False)
+    if sigma.shape[-1] < 6:
+        return np.full(len(jacobians), math.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(sigma[:, -1] > 0.0, sigma[:, 0] / sigma[:, -1], math.inf)
+
+
 def condition_number(jac: np.ndarray) -> float:
-    """κ = σ_max/σ_min of a 6×n Jacobian (∞ for n < 6 or σ_min = 0); the same in base and ee axes."""
-    sigma = np.linalg.svd(jac, compute_uv=False)
-    return float(sigma[0] / sigma[-1]) if sigma.size == 6 and sigma[-1] > 0.0 else math.inf
+    """κ of one 6×n Jacobian (``condition_numbers``)."""
+    return float(condition_numbers(jac[None])[0])
 
 
 class WrenchSolution(NamedTuple):
@@ -375,12 +384,26 @@ class RobotModel:
         jac = pin.computeFrameJacobian(self.model, self.data, self._true_q(q), self._frame_id(frame), pin.LOCAL)
         return jac.T @ wrench
 
-    def wrench_at_end_effector(self, q: np.ndarray, frame: str, wrench: np.ndarray,
-                               axes: str = "base") -> np.ndarray:
-        """Re-express a wrench (6,) given in ``frame`` (its axes, its origin) at the end-effector
-        origin, in base or end-effector axes: how a wrist F/T reading compares with our estimate."""
-        pin.framesForwardKinematics(self.model, self.data, self._true_q(q))
-        in_world = self.data.oMf[self._frame_id(frame)].act(pin.Force(wrench[:3], wrench[3:]))
-        ee = self.data.oMf[self.ee_frame_id]
-        target = pin.SE3(np.eye(3), ee.translation) if axes == "base" else ee
-        return target.actInv(in_world).vector.copy()
+    def wrenches_at_end_effector(self, q: np.ndarray, frame: str, wrench: np.ndarray,
+                                 axes: str = "base") -> np.ndarray:
+        """Re-express wrenches (T, 6) [f, m], each given in ``frame`` (its axes, its origin) at the pose q (T, n) rad,
+        at the end-effector origin in base or end-effector axes: how a wrist F/T reading compares with our estimate.
+
+        With the frame's pose (R_s, p_s) and the ee origin p_e in base: f_b = R_s f, m_b = R_s m + (p_s − p_e) × f_b
+        (pinocchio's SE3 action on a force, then the moment about p_e); in ee axes both are rotated by R_eᵀ. One
+        forward-kinematics pass per sample, the rest in batch; rows with a non-finite wrench are NaN."""
+        sensor, ee, model, data = self._frame_id(frame), self.ee_frame_id, self.model, self.data
+        count = len(q)
+        rotation, ee_rotation, arm = np.empty((count, 3, 3)), np.empty((count, 3, 3)), np.empty((count, 3))
+        for k in range(count):
+            pin.framesForwardKinematics(model, data, self._true_q(q[k]))
+            at_sensor, at_ee = data.oMf[sensor], data.oMf[ee]
+            rotation[k], ee_rotation[k] = at_sensor.rotation, at_ee.rotation
+            arm[k] = at_sensor.translation - at_ee.translation
+        force = np.einsum("kij,kj->ki", rotation, wrench[:, :3])
+        moment = np.einsum("kij,kj->ki", rotation, wrench[:, 3:]) + np.cross(arm, force)
+        if axes != "base":
+            force, moment = (np.einsum("kji,kj->ki", ee_rotation, v) for v in (force, moment))
+        result = np.hstack((force, moment))
+        result[~np.isfinite(wrench).all(axis=1)] = np.nan
+        return result

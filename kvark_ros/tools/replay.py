@@ -28,8 +28,8 @@ from kvark_ros.core.tare import TareError
 from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.model_store import TrainedModel, load_model
 from kvark_ros.core.model_checks import measured_rate, model_warnings
-from kvark_ros.core.observers import ResidualPredictor, make_observer
-from kvark_ros.core.robot_model import RobotModel, urdf_sha256
+from kvark_ros.core.observers import ResidualPredictor
+from kvark_ros.core.robot_model import RobotModel, condition_numbers, urdf_sha256
 from kvark_ros.io import (BagError, BagWriter, RecordedRun, bool_messages, float64_array_messages,
                           joint_state_messages, wrench_messages, write_run_messages)
 from kvark_ros.io.alignment import read_inputs
@@ -128,9 +128,7 @@ def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, i
     if run.wrench is not None:
         measured = np.hstack((run.wrench.force, run.wrench.torque))
         at_sensor = interpolate(inputs.stamp, run.wrench.stamp, measured)
-        frame = run.wrench.frame_id
-        wrench = np.array([robot.wrench_at_end_effector(q, frame, w, config.wrench.frame) if np.isfinite(w).all()
-                           else np.full(6, np.nan) for q, w in zip(inputs.q, at_sensor)])
+        wrench = robot.wrenches_at_end_effector(inputs.q, run.wrench.frame_id, at_sensor, config.wrench.frame)
     if run.external_torque is not None and use_topic:
         tau = interpolate(inputs.stamp, run.external_torque.stamp, run.external_torque.effort)
         if wrench is None:    # no wrist sensor: the true torque through the same pseudo-inverse (eq. 39)
@@ -172,13 +170,14 @@ def plant_oracle(config: EstimatorConfig, plant: str | None) -> ResidualPredicto
 
 def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: EstimatorInputs, name: str,
                  oracle: ResidualPredictor | None = None, tare_at: float | None = None,
-                 truth_tau: np.ndarray | None = None) -> ObserverRun:
+                 truth_tau: np.ndarray | None = None, estimator: Estimator | None = None) -> ObserverRun:
     """Step a fresh Estimator with observer ``name`` over every input sample (``oracle``: for the oracle).
 
     ``tare_at``: s after the first sample from which a tare is started (``Estimator.start_tare``, as the node's
     ``~/tare``) at the first sample the arm is at rest; its outcome is in ``ObserverRun.tare``. ``truth_tau``: the
-    true τ_ext (T, n) N·m, for ``ObserverRun.mahalanobis`` (its time is not counted in ``us_per_step``)."""
-    estimator = Estimator.from_config(config, trained, observer=name, oracle=oracle)
+    true τ_ext (T, n) N·m, for ``ObserverRun.mahalanobis`` (its time is not counted in ``us_per_step``).
+    ``estimator``: one built from the same arguments and not yet stepped (replay builds them before decoding)."""
+    estimator = estimator or Estimator.from_config(config, trained, observer=name, oracle=oracle)
     tare_stamp = None if tare_at is None else inputs.stamp[0] + tare_at
     tare_started = False
     count, n = len(inputs), estimator.robot.n
@@ -191,8 +190,7 @@ def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: Estimat
     collision = np.zeros(count, dtype=bool)
     distance = np.full(count, np.nan)
     scored_covariances = np.full((count, n, n), np.nan) if truth_tau is not None else None
-    condition, unobservable = np.full(count, np.nan), np.zeros(count, dtype=int)
-    scoring = 0.0                      # s spent reading κ (an SVD), not the estimator's
+    jacobians, unobservable = np.zeros((count, 6, n)), np.zeros(count, dtype=int)
     started = time.perf_counter()
     for k in range(count):
         if tare_stamp is not None and not tare_started and inputs.stamp[k] >= tare_stamp:
@@ -205,17 +203,19 @@ def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: Estimat
         if estimate is None:
             continue
         valid[k], contact[k], collision[k] = True, estimate.contact, estimate.collision
-        tau[k], wrench[k] = estimate.tau_ext, estimate.wrench
-        scored = time.perf_counter()
-        condition[k], unobservable[k] = estimate.jacobian_condition, estimate.weak_directions.shape[1]
-        scoring += time.perf_counter() - scored
+        tau[k], wrench[k], jacobians[k] = estimate.tau_ext, estimate.wrench, estimate.jacobian
+        unobservable[k] = estimate.weak_directions.shape[1]
         if estimate.tau_cov is not None:
-            tau_var[k] = np.diag(estimate.tau_cov)
-            wrench_var[k] = np.diag(estimate.wrench_cov)
+            tau_var[k] = estimate.tau_cov.diagonal()
+            wrench_var[k] = estimate.wrench_cov.diagonal()
             if scored_covariances is not None:
                 scored_covariances[k] = estimate.tau_cov
-    elapsed = time.perf_counter() - started - scoring
-    if scored_covariances is not None:                 # after the loop, in one batch (out of us_per_step as before)
+    elapsed = time.perf_counter() - started
+    # After the loop, in batches, outside us_per_step: κ of J (Estimate.jacobian_condition) and the Mahalanobis
+    # distance of the error.
+    condition = np.full(count, np.nan)
+    condition[valid] = condition_numbers(jacobians[valid])
+    if scored_covariances is not None:
         distance = mahalanobis_rows(tau - truth_tau, scored_covariances)
     reports = estimator.observer.reports_covariance
     rejected = {status: number for status, number in estimator.counts.items() if status != "ok"}
@@ -254,6 +254,16 @@ def write_estimates(path: Path, run: RecordedRun, inputs: EstimatorInputs, resul
                                np.repeat(np.arange(len(valid)), len(blocks)))
 
 
+def bag_fields(inputs: EstimatorInputs, truth: GroundTruth | None, trained: TrainedModel, warnings: list[str],
+               decode_seconds: float, trim: tuple[float, float] = (0.0, 0.0)) -> dict:
+    """metrics.json's fields of the bag itself (``kvark evaluate`` writes the same per bag)."""
+    return {"ground_truth": truth.kind if truth is not None else "none", "trim_s": [float(v) for v in trim],
+            "samples": len(inputs), "duration_s": round(float(inputs.stamp[-1] - inputs.stamp[0]), 3),
+            "torque_source": inputs.torque_source, "dropped_samples": inputs.dropped,
+            "decode_seconds": round(decode_seconds, 3), "sample_rate_hz": round(measured_rate(inputs.stamp), 3),
+            "model_sample_rate_hz": round(trained.sample_rate, 3), "warnings": warnings}
+
+
 def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path, observers: Sequence[str],
            reference_bag: Path | None = None, oracle: ResidualPredictor | None = None, write_bag: bool = True,
            plots: bool = True, log=print, truth_kind: str = "auto",
@@ -263,8 +273,11 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
     ``oracle``: the simulator's true residual (``kvark_ros.sim.plant.OracleResidual``), for the oracle;
     ``truth_kind``: one of ``GROUND_TRUTHS``; ``trim``: seconds dropped at the start and at the end.
     """
-    for name in observers:           # fail on a model or oracle that cannot serve an observer before decoding
-        make_observer(name, trained, config.filter, oracle)
+    started = time.perf_counter()
+    # Built before decoding: a model or oracle that cannot serve an observer fails first, and the compiled kernels
+    # load (from numba's cache: once per process) outside the replay's own time.
+    estimators = [Estimator.from_config(config, trained, observer=name, oracle=oracle) for name in observers]
+    start_up = time.perf_counter() - started
     started = time.perf_counter()
     run, inputs = read_inputs(bag, config)
     if len(inputs) < 2:
@@ -283,21 +296,16 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
         inputs, truth = _take(inputs, truth, trimmed_rows(inputs.stamp, *trim))
     decode_seconds = time.perf_counter() - started
     results = []
-    for step, name in enumerate(observers, start=1):
-        result = run_observer(config, trained, inputs, name, oracle, tare_at, None if truth is None else truth.tau_ext)
+    for step, (name, estimator) in enumerate(zip(observers, estimators), start=1):
+        result = run_observer(config, trained, inputs, name, oracle, tare_at, None if truth is None else truth.tau_ext,
+                              estimator)
         results.append(result)
         log(f"[replay] {step}/{len(observers)} {name:<12} {result.us_per_step:7.1f} µs/step, "
             f"{result.valid.sum()} estimates")
     duration = float(inputs.stamp[-1] - inputs.stamp[0])
-    metrics = {
-        "bag": str(bag),
-        "ground_truth": truth.kind if truth is not None else "none", "trim_s": [float(v) for v in trim],
-        "samples": len(inputs), "duration_s": round(duration, 3), "torque_source": inputs.torque_source,
-        "dropped_samples": inputs.dropped, "decode_seconds": round(decode_seconds, 3),
-        "sample_rate_hz": round(measured_rate(inputs.stamp), 3), "model_sample_rate_hz": round(trained.sample_rate, 3),
-        "warnings": warnings,
-        "observers": {r.name: observer_metrics(r, truth, inputs.stamp) for r in results},
-    }
+    metrics = {"bag": str(bag), **bag_fields(inputs, truth, trained, warnings, decode_seconds, trim),
+               "start_up_seconds": round(start_up, 3),
+               "observers": {r.name: observer_metrics(r, truth, inputs.stamp) for r in results}}
     out.mkdir(parents=True, exist_ok=True)
     if write_bag:
         write_estimates(out / "estimates", run, inputs, results, config)
@@ -306,7 +314,9 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
         from kvark_ros.tools.report import write_replay_report
         write_replay_report(out, metrics, robot, inputs, truth, results)
     total = time.perf_counter() - started
-    log(f"[replay] {len(observers)} observer(s) over {duration:.1f} s of data in {total:.1f} s")
+    log(f"[replay] {len(observers)} observer(s) over {duration:.1f} s of data in {total:.2f} s "
+        f"({duration / total:.0f} × real time; reading {decode_seconds:.2f} s), after {start_up:.2f} s building the "
+        f"estimators (models, compiled kernels)")
     return metrics
 
 

@@ -30,7 +30,7 @@ COMMITTED = ("panda_payload", "panda_contact", "panda_collision", "panda_excitat
 SLICE = 1.0              # s per bag: 500 samples, enough for the filters to settle and cheap to run 40 times
 SLICES = 4               # from each committed bag (all of them are at least 5 s long): 5 × 4 = 20 bags
 OBSERVERS = ("kvark", "momentum")     # one with a covariance (coverage figures), one without
-TIMINGS = ("us_per_step", "decode_seconds")
+TIMINGS = ("us_per_step", "decode_seconds", "start_up_seconds")       # replay alone builds its estimators first
 
 
 def _window(series, rows):
@@ -164,6 +164,16 @@ def test_an_unreachable_scheduler_is_one_error_line(tmp_path, capsys, monkeypatc
     assert code == 1 and "\n" not in err
     assert err.startswith(f"kvark: error: --scheduler {address}: no Dask scheduler reached") and "dask scheduler" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_without_dask_evaluate_is_one_error_line_naming_the_install(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)       # `import distributed` now raises ImportError
+    code = main(["evaluate", "--bags", str(ROOT / "bags" / "panda_payload"), "--model", str(MODEL),
+                 "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip()
+    assert code == 1 and "\n" not in err
+    assert err.startswith("kvark: error: kvark evaluate runs on Dask, which is not installed")
+    assert "pip install dask==2026.8.0 distributed==2026.8.0" in err and not (tmp_path / "out").exists()
 
 
 def test_no_worker_count_below_one(tmp_path, capsys):

@@ -1,7 +1,8 @@
 """Joint states and commanded torques in, paired estimator samples out. ROS-free and message-agnostic.
 
-One rule for the live node and for replay over a bag (``kvark_ros.io.alignment`` feeds it a bag's
-messages in time order), so both give the same samples by construction.
+One rule for the live node and for replay over a bag. Replay applies it to a whole bag at once
+(``kvark_ros.io.alignment``: in time order the rule decides every state together), and
+test/test_pairing_bulk.py checks that this gives the samples this streaming pairer gives.
 
 Mapping names to columns
     Joints are matched by name, never by position (:class:`JointColumns`): extra joints are ignored,

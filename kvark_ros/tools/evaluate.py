@@ -46,7 +46,7 @@ from kvark_ros.core.robot_model import RobotModel, urdf_sha256
 from kvark_ros.io import BagError
 from kvark_ros.io.alignment import read_inputs
 from kvark_ros.tools.metrics import observer_metrics
-from kvark_ros.tools.replay import GroundTruth, ObserverRun, ground_truth, plant_oracle, run_observer
+from kvark_ros.tools.replay import GroundTruth, ObserverRun, bag_fields, ground_truth, plant_oracle, run_observer
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -121,14 +121,8 @@ def _decoded(setup: Setup, bag: str, version: tuple) -> tuple[EstimatorInputs, G
     if len(inputs) < 2:
         raise BagError(f"{bag}: fewer than two usable samples; check that joint_states and effort_commands overlap")
     truth = ground_truth(robot, config, run, inputs, None, TRUTHS[setup.truth])
-    rate = measured_rate(inputs.stamp)
-    fields = {"ground_truth": truth.kind if truth is not None else "none", "trim_s": [0.0, 0.0],
-              "samples": len(inputs), "duration_s": round(float(inputs.stamp[-1] - inputs.stamp[0]), 3),
-              "torque_source": inputs.torque_source, "dropped_samples": inputs.dropped,
-              "decode_seconds": round(time.perf_counter() - started, 3), "sample_rate_hz": round(rate, 3),
-              "model_sample_rate_hz": round(trained.sample_rate, 3),
-              "warnings": model_warnings(trained, config.robot, rate, inputs.simulated)}
-    return inputs, truth, fields
+    warnings = model_warnings(trained, config.robot, measured_rate(inputs.stamp), inputs.simulated)
+    return inputs, truth, bag_fields(inputs, truth, trained, warnings, time.perf_counter() - started)
 
 
 def decoded(setup: Setup, bag: str) -> tuple[EstimatorInputs, GroundTruth | None, dict[str, Any]]:
@@ -155,8 +149,14 @@ def local_cores() -> int:
 @contextmanager
 def dask_client(scheduler: str | None, workers: int | None, tasks: int, log: Callable[[str], None]) -> Iterator[Client]:
     """A Dask client: of the running scheduler at ``scheduler``, or of a local cluster of ``workers`` processes
-    (default one per core, at most one per task) with one thread each and BLAS limited to one thread."""
-    from distributed import Client, LocalCluster
+    (default one per core, at most one per task) with one thread each and BLAS limited to one thread;
+    ``ConfigError`` when Dask is not installed."""
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:
+        raise ConfigError(f"kvark evaluate runs on Dask, which is not installed here ({exc}); install the pinned "
+                          "versions with `pip install dask==2026.8.0 distributed==2026.8.0`, or replay bags one by "
+                          "one with `kvark replay`") from None
     if scheduler:
         try:
             client = Client(scheduler, timeout=CONNECT_TIMEOUT)

@@ -17,9 +17,9 @@ BAND = 2.0        # N·m, a UR-sized static friction band on every joint
 
 def test_the_band_is_half_the_jump_of_the_friction_across_zero():
     """Coulomb F tanh(q̇/3 mrad/s) + viscous 0.3 q̇ + noise: the band is F to 0.05 N·m (the viscous part adds
-    0.3 × ~0.05 rad/s = 0.015 N·m at the slow window's median speed; the noise's median error over ~2 000
+    0.3 × ~0.025 rad/s = 0.008 N·m at the slow window's median speed; the noise's median error over ~600
     samples a side is ~0.003). A smooth friction without a jump gives a small band; a joint with nothing
-    slower than 0.8 rad/s, none."""
+    slower than 0.32 rad/s, none."""
     rng = np.random.default_rng(0)
     qd = rng.uniform(-1.0, 1.0, (40_000, 3))
     coulomb = np.array([0.5, 2.0, 4.0])
@@ -30,7 +30,7 @@ def test_the_band_is_half_the_jump_of_the_friction_across_zero():
     assert band[2] < 0.03
     fast = np.sign(qd) * (0.9 + 0.1 * np.abs(qd))                     # nothing slides slower than 0.9 rad/s
     assert identify_band(fast, friction)[:2] == pytest.approx([0.0, 0.0])
-    sparse = np.where(np.abs(qd) < 0.15, 0.15 * np.sign(qd), qd)      # the window must double to 0.4 rad/s
+    sparse = np.where(np.abs(qd) < 0.15, 0.15 * np.sign(qd), qd)      # the window must double to 0.16 rad/s
     assert identify_band(sparse, friction)[:2] == pytest.approx(coulomb[:2], abs=0.15)
 
 

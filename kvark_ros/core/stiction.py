@@ -7,8 +7,10 @@ after each push at standstill). So near q̇_j = 0 the external torque is known o
 
 The band F_s,j is identified at training from the friction the model sees: the residual τ_r plus the
 augmentation's friction effects (docs/method.md §4.11), as half the jump of its median across zero
-velocity, from samples sliding slowly either way (``SLOW``). The estimate is not changed; its interval
-is widened by the variance of a torque uniform on ±F_s,
+velocity, from samples sliding slowly either way (``SLOW``: above the velocity noise, below the speeds
+where friction falls from its static to its sliding level), with τ_m and q̈ through a 50 ms filter
+(``training.band_friction``). The estimate is not changed; its interval is widened by the variance of a
+torque uniform on ±F_s,
 
     σ²_s,j(q̇_j) = F_s,j² / 3 · exp(−(q̇_j / v_s)²),
 
@@ -24,8 +26,11 @@ from typing import Any, Mapping
 import numpy as np
 
 # rad/s: the slow sliding the band is read from: |q̇| in [SLOW[0], SLOW[1]], the upper end doubled up to 3
-# times (0.8 rad/s, where viscous friction starts to count) where a joint has fewer than MIN_SAMPLES each way.
-SLOW = (0.01, 0.1)
+# times (0.32 rad/s) where a joint has fewer than MIN_SAMPLES each way. The upper end stays below the
+# Stribeck velocities of arm joints (0.04-0.1 rad/s), over which friction falls to its sliding level: a
+# window to 0.1 rad/s read 75-87 % of the simulated Panda's static levels, this one 87-102 % (docs/method.md
+# §4.11).
+SLOW = (0.01, 0.04)
 MIN_SAMPLES = 20
 FRICTION_EFFECTS = ("coulomb_friction", "stribeck_friction", "viscous_friction")
 

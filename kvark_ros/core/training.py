@@ -47,6 +47,7 @@ HOLDOUT = 0.2                # share of samples held out for λ₂ calibration (
 COVERAGE_TARGET = 0.95       # λ₂ is set so that 95 % of held-out residuals fall in μ ± 1.96 σ
 LAMBDA2_GRID = np.geomspace(1e-2, 1e8, 61)
 SAVGOL_WINDOW = 0.15         # s, window of the acceleration and torque filter (75 samples at 500 Hz)
+BAND_WINDOW = 0.05           # s, the same filter for the friction the static band is read from (band_friction)
 
 
 @dataclass(frozen=True)
@@ -77,8 +78,9 @@ class TrainingData:
     dynamics: tuple[SegmentDynamics, ...]
 
 
-def smoothed_signals(stamp: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """q̈ (T, n) and τ_m (T, n) through the same zero-phase Savitzky-Golay filter.
+def smoothed_signals(stamp: np.ndarray, qd: np.ndarray, tau_m: np.ndarray,
+                     window_time: float = SAVGOL_WINDOW) -> tuple[np.ndarray, np.ndarray]:
+    """q̈ (T, n) and τ_m (T, n) through the same zero-phase Savitzky-Golay filter of ``window_time`` s.
 
     q̈ comes from smoothing q̇ and differentiating against the actual stamps. τ_m must be smoothed
     the same way: the controller's torque reacts to sensor noise faster than any acceleration
@@ -86,7 +88,7 @@ def smoothed_signals(stamp: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> tu
     (measured on the simulated Panda: 0.5 N·m scatter on joints 1-4 with τ_m raw, see README).
     """
     dt = float(np.median(np.diff(stamp)))
-    window = max(5, int(round(SAVGOL_WINDOW / dt)) | 1)
+    window = max(5, int(round(window_time / dt)) | 1)
     if len(stamp) <= window:
         return np.gradient(qd, stamp, axis=0), tau_m
     return (np.gradient(savgol_filter(qd, window, 3, axis=0), stamp, axis=0),
@@ -291,13 +293,24 @@ def train_model(robot: RobotModel, robot_name: str, segments: Sequence[Estimator
     # t_s: the median period of all training samples; the config's filter times convert at it (PerSample).
     sample_period = float(np.median(np.concatenate([np.diff(seg.stamp) for seg in data.segments])))
     log(f"[train] sample rate {1.0 / sample_period:.1f} Hz (recorded in the model: the filter's times convert at it)")
-    friction = friction_torque(data.tau_r, robot.augmentation, data.q, data.qd, np.zeros_like(data.qd))
-    stiction = StictionBand(identify_band(data.qd, friction))
+    stiction = StictionBand(identify_band(data.qd, band_friction(robot, data)))
     log("[train] static friction band F_s (N·m): "
         + ", ".join(f"{name} {value:.2f}" for name, value in zip(robot.joint_names, stiction.band)))
     trained = TrainedModel(robot_name, robot.joint_names, kmp, tuning, info, residuals, tunings, noise,
                            robot.augmentation, sample_period, stiction)
     return calibrate_intervals(trained, data, settings or default_filter_settings(), log)
+
+
+def band_friction(robot: RobotModel, data: TrainingData) -> np.ndarray:
+    """The friction the model sees (T, n) N·m (``stiction.friction_torque``), here with τ_m and q̈ through a
+    ``BAND_WINDOW`` filter: the residual model's ``SAVGOL_WINDOW`` smears the turn of every reversal, where the
+    static level shows, over 150 ms and would give a band below it (docs/method.md §4.11)."""
+    residual = []
+    for seg in data.segments:
+        qdd, tau_m = smoothed_signals(seg.stamp, seg.qd, seg.tau_m, BAND_WINDOW)
+        residual.append(tau_m - np.array([robot.model_torque(q, qd, a, tau) for q, qd, a, tau
+                                          in zip(seg.q, seg.qd, qdd, tau_m)]))
+    return friction_torque(np.concatenate(residual), robot.augmentation, data.q, data.qd, np.zeros_like(data.qd))
 
 
 def calibrate_intervals(trained: TrainedModel, data: TrainingData, settings: FilterSettings,

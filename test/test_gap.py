@@ -294,6 +294,9 @@ def test_cli_writes_outputs_from_a_bag(runs, robots, tmp_path_factory):
     assert result["effects"][0]["name"] in EFFECT_NAMES
     for name in ("report.md", "gap_per_joint.png", "residual_vs_velocity.png", "residual_vs_position.png"):
         assert (out / name).is_file()
+    # The named payload's mass regroups with link 6 (the flange is on joint 7's axis): the report says so.
+    assert result["flange_mass"]["identified"] is False
+    assert "The flange link's mass is not identified on its own" in (out / "report.md").read_text()
     # The augmentation reproduces the fitted gap: applied to the held-out samples it leaves the after-gap.
     aug = yaml.safe_load((out / "augmentation.yaml").read_text())
     assert aug["effects"][0]["name"] == "payload"

@@ -62,6 +62,7 @@ from kvark_ros.gap.fitting import Fitter
 from kvark_ros.gap.plausibility import (
     RAW_QDD_WINDOW,
     flange_change,
+    flange_mass_regrouping,
     look_alikes,
     plausibility_warnings,
     raw_gap,
@@ -467,6 +468,7 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         "look_alikes": look_alikes({t.name: fitter.design(t)[0] for t in terms},
                                    {name: fitter.design(Term(name, tuple(range(n)), variants(name, priors)[0]))[0]
                                     for name in effects}, fitter.w),
+        "flange_mass": flange_mass_regrouping(train, robot),
         "against": None if robot.augmentation is None else robot.augmentation.source,
         "holdout": holdout, "samples": {"train": len(train), "held_out": len(held)},
         "seconds": round(time.perf_counter() - started, 1),

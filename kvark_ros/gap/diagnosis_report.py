@@ -56,6 +56,13 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
               ""]
     lines += [f"- {pair['accepted']} ~ {pair['look_alike']} (cosine {pair['cosine']:.3f})"
               for pair in r.get("look_alikes", [])] or ["None."]
+    regrouping = r.get("flange_mass")
+    if regrouping and not regrouping["identified"]:
+        lines += ["", f"The flange link's mass is not identified on its own: a mass at the flange is exactly a "
+                  f"change of the inertial parameters of {regrouping['link_before_flange']} (relative residual "
+                  f"{regrouping['relative_residual']:.0e} on this motion; the base-parameter regrouping of "
+                  "identification). A tool's or payload's mass change is read relative to that link's URDF values, "
+                  "and link_inertia can absorb it: an error of that link's mass shifts the tool's by as much."]
     lines += ["", "## Effects found", ""]
     if not r["effects"]:
         lines.append("None: the nominal model explains the data to within the noise.")

@@ -5,6 +5,8 @@
   hiding behind it;
 * ``flange_change``: the payload effect as what it is physically: an unmodelled tool or payload (the flange
   link heavier than in the URDF) or a tool mismatch (lighter: the URDF's tool is not what the robot carries);
+* ``flange_mass_regrouping``: whether the data can tell the flange link's mass from the link before it (on a
+  serial arm whose flange lies on the last joint's axis they cannot: a base-parameter regrouping);
 * ``raw_gap``: the held-out gap before/after on the raw measured torque with q̈ from a short filter
   (``RAW_QDD_WINDOW``), comparable to published identification figures; the selection itself runs on
   the 150 ms-filtered signals of ``kvark train``.
@@ -19,8 +21,9 @@ from scipy.signal import savgol_filter
 from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.payload import inertia_problem
 from kvark_ros.core.robot_model import RobotModel
-from kvark_ros.gap.effects import Priors, Term, signals
+from kvark_ros.gap.effects import Priors, Signals, Term, signals
 
+REGROUPED = 1e-6         # relative residual below which the flange mass is a combination of the previous link's
 RAW_QDD_WINDOW = 0.05    # s: q̈ from a 50 ms Savitzky-Golay derivative of q̇; τ_m not filtered at all
 BOUND_SHARE = 0.01       # a parameter within 1 % of its prior's range from a bound is "at the bound"
 
@@ -68,6 +71,25 @@ def flange_change(flange: np.ndarray, flange_map: np.ndarray, theta: np.ndarray)
             if theta[0] < 0.0 else "unmodelled payload or tool at the flange")
     return {"kind": kind, "mass_change": float(theta[0]), "flange_link_mass_urdf": float(flange[0]),
             "flange_link_mass_total": float(total[0]), "physically_consistent": inertia_problem(total) is None}
+
+
+def flange_mass_regrouping(s: Signals, robot: RobotModel) -> dict | None:
+    """Whether a mass change at the flange is identified apart from the link before the flange's link: the
+    least-squares residual of the payload regressor's mass column (T·n,) on that link's 10 inertial-parameter
+    columns, relative to the column's norm (``REGROUPED``: not identified). None without such a link.
+
+    A point mass on the last joint's axis moves with the previous link whatever that joint does, so its torques
+    are exactly those of a change of the previous link's mass, first moment and inertia (the base-parameter
+    regrouping of identification): a tool's mass is then read relative to that link's URDF values."""
+    if s.link_regressor.shape[2] < 10:
+        return None
+    mass = s.payload_regressor[:, :, 0].reshape(-1)
+    previous = s.link_regressor[:, :, -10:].reshape(-1, 10)
+    coefficients = np.linalg.lstsq(previous, mass, rcond=None)[0]
+    residual = float(np.linalg.norm(mass - previous @ coefficients) / max(np.linalg.norm(mass), 1e-300))
+    joint = robot.model.names[robot.model.frames[robot.flange_frame_id].parentJoint - 1]
+    return {"link_before_flange": f"the link moved by {joint}", "relative_residual": residual,
+            "identified": residual >= REGROUPED}
 
 
 def raw_gap(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float, terms: Sequence[Term],

@@ -8,6 +8,7 @@ encode, read and write many messages at once for them. Import the public names
 from this package.
 """
 
+from kvark_ros.io.common import load_message_types
 from kvark_ros.io.info import bag_info
 from kvark_ros.io.reader import read_run
 from kvark_ros.io.runs import (
@@ -46,6 +47,7 @@ __all__ = [
     "bool_messages",
     "float64_array_messages",
     "joint_state_messages",
+    "load_message_types",
     "read_run",
     "wrench_messages",
     "write_run",

@@ -29,3 +29,8 @@ _NS = 1_000_000_000
 def _typestore() -> Any:
     """The single Jazzy typestore: message classes, CDR (de)serialisation."""
     return get_typestore(Stores.ROS2_JAZZY)
+
+
+def load_message_types() -> None:
+    """Build the typestore now (about 0.05 s, once per process) rather than inside the first bag's reading."""
+    _typestore()

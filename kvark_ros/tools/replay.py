@@ -31,7 +31,7 @@ from kvark_ros.core.model_checks import measured_rate, model_warnings
 from kvark_ros.core.observers import ResidualPredictor
 from kvark_ros.core.robot_model import RobotModel, condition_numbers, urdf_sha256
 from kvark_ros.io import (BagError, BagWriter, RecordedRun, bool_messages, float64_array_messages,
-                          joint_state_messages, wrench_messages, write_run_messages)
+                          joint_state_messages, load_message_types, wrench_messages, write_run_messages)
 from kvark_ros.io.alignment import read_inputs
 from kvark_ros.tools.reference import align_reference, interpolate
 from kvark_ros.tools.metrics import mahalanobis_rows, observer_metrics
@@ -274,9 +274,10 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
     ``truth_kind``: one of ``GROUND_TRUTHS``; ``trim``: seconds dropped at the start and at the end.
     """
     started = time.perf_counter()
-    # Built before decoding: a model or oracle that cannot serve an observer fails first, and the compiled kernels
-    # load (from numba's cache: once per process) outside the replay's own time.
+    # Built before decoding: a model or oracle that cannot serve an observer fails first, and what a process builds
+    # once (the compiled kernels from numba's cache, the message types) is outside the replay's own time.
     estimators = [Estimator.from_config(config, trained, observer=name, oracle=oracle) for name in observers]
+    load_message_types()
     start_up = time.perf_counter() - started
     started = time.perf_counter()
     run, inputs = read_inputs(bag, config)
@@ -315,8 +316,8 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
         write_replay_report(out, metrics, robot, inputs, truth, results)
     total = time.perf_counter() - started
     log(f"[replay] {len(observers)} observer(s) over {duration:.1f} s of data in {total:.2f} s "
-        f"({duration / total:.0f} × real time; reading {decode_seconds:.2f} s), after {start_up:.2f} s building the "
-        f"estimators (models, compiled kernels)")
+        f"({duration / total:.0f} × real time; reading {decode_seconds:.2f} s), after {start_up:.2f} s of start-up "
+        f"(estimators with their compiled kernels, message types)")
     return metrics
 
 

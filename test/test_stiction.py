@@ -92,3 +92,25 @@ def test_the_collision_flag_is_not_delayed_by_the_band(panda_config, panda_train
         flags = [estimator.step(0.4 + 0.002 * k, Q0, np.zeros(7), hit).collision for k in range(1, 100)]
         firsts.append(flags.index(True))
     assert firsts[0] == firsts[1]
+
+
+def test_training_reads_the_static_level_through_the_short_filter(panda):
+    """A Panda swinging every joint through slow reversals with Stribeck friction (sliding 1.0, static 1.4 N·m,
+    v_s 0.05 rad/s) and no other model error: the band read through the 50 ms filter is the static level to 8 %
+    (the window's median speed, ~0.025 rad/s, is where the curve has fallen 1 − exp(−0.25) ≈ 22 % of the way
+    to sliding, and the filter's edge rounds it), while the residual model's 150 ms filter reads it lower where
+    the reversal is quick: on joints 4-7 (0.24-0.3 Hz swings), 43-82 % of the short reading."""
+    from kvark_ros.core.inputs import EstimatorInputs
+    from kvark_ros.core.training import band_friction, training_data
+    t = np.arange(0.0, 12.0, 0.002)
+    omega = 2 * np.pi * np.linspace(0.15, 0.3, 7)
+    q = Q0 + 0.4 * np.sin(np.outer(t, omega))
+    qd = 0.4 * omega * np.cos(np.outer(t, omega))
+    qdd = -0.4 * omega ** 2 * np.sin(np.outer(t, omega))
+    friction = (1.0 + 0.4 * np.exp(-np.square(qd / 0.05))) * np.tanh(qd / 0.002)
+    tau_m = np.array([panda.inverse_dynamics(a, b, c) for a, b, c in zip(q, qd, qdd)]) + friction
+    data = training_data(panda, [EstimatorInputs(t, q, qd, tau_m, "test", 0)])
+    short = identify_band(qd, band_friction(panda, data))
+    long = identify_band(qd, data.tau_r)
+    assert short == pytest.approx(np.full(7, 1.4), rel=0.08)
+    assert np.all(long[3:] < 0.85 * short[3:])

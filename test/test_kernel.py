@@ -21,17 +21,23 @@ import numba
 import numpy as np
 import pytest
 
-from kvark_ros.core import step_kernel
+from kvark_ros.core import model_kernels, step_kernel
+from kvark_ros.core.augmentation import parse_augmentation
 from kvark_ros.core.calibration import IntervalScale
+from kvark_ros.core.compiled_step import _augmentation_entries
 from kvark_ros.core.config import load_config
 from kvark_ros.core.estimator import Estimator, Status
+from kvark_ros.core.model_kernels import augmentation_torque, kmp_predict_pose
 from kvark_ros.core.model_store import load_model
 from kvark_ros.core.observers import make_observer
 from kvark_ros.core.observers.kvark_filter import KVARKFilter
 from kvark_ros.core.observers.kvark_kernel import KVARKKernelFilter
 from kvark_ros.core.observers.kvark_momentum import KVARKMomentumFilter
+from kvark_ros.core.residual.common import VARIANCE_FLOOR
+from kvark_ros.core.residual.kmp_inputs import fit_kmp, second_inputs
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.core.stiction import StictionBand
+from kvark_ros.core.training import training_data
 from kvark_ros.io.alignment import read_inputs
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,6 +48,18 @@ Q0 = np.array([0.0, -0.4, 0.0, -2.0, 0.0, 1.6, 0.8])          # rad, a regular p
 BIAS = np.array([1.0, -2.0, 1.5, 3.0, -0.5, 0.8, -0.3])       # N·m the nominal model misses at rest (test_tare)
 FIELDS = ("tau_ext", "tau_cov", "wrench", "wrench_cov")
 FACTORS = np.linspace(0.5, 3.0, 7)                            # interval factors c (test_interval_calibration)
+POSE_INPUTS = ("qd_q", "qd", "qd_g", "qd", "qd_q", "qd", "qd")   # KMP inputs per joint (docs/method.md §3.7)
+AUGMENTATION = """
+joint_names: [panda_joint1, panda_joint2, panda_joint3, panda_joint4, panda_joint5, panda_joint6, panda_joint7]
+effects:
+- {name: coulomb_friction, joint_indices: [0, 1, 2, 3, 4, 5, 6], variant: {epsilon: 0.05},
+   theta: [0.5, 0.6, 0.4, 0.5, 0.2, 0.2, 0.1]}
+- {name: viscous_friction, joint_indices: [1, 3], theta: [0.2, 0.1]}
+- {name: stribeck_friction, joint_indices: [0, 2], variant: {stribeck_velocity: 0.1, epsilon: 0.02}, theta: [0.3, 0.4]}
+- {name: drive_gain, joint_indices: [1], theta: [0.03]}
+- {name: torque_offset, joint_indices: [2, 3], theta: [0.1, -0.2]}
+- {name: position_ripple, joint_indices: [0, 5], variant: {cycles_per_rev: 6}, theta: [[0.05, -0.03], [0.02, 0.01]]}
+"""
 
 
 @pytest.fixture(scope="module")
@@ -85,19 +103,19 @@ def _assert_equal_to_rounding(reference: list, kernel: list) -> None:
         assert np.abs(mine - theirs).max() <= RELATIVE * np.abs(mine).max(), field
 
 
-def _assert_states_close(reference: dict, kernel: dict) -> None:
-    """Equal keys, shapes and (to RELATIVE of each array's largest entry) values, components included."""
+def _assert_states_close(reference: dict, kernel: dict, relative: float = RELATIVE) -> None:
+    """Equal keys, shapes and (to ``relative`` of each array's largest entry) values, components included."""
     assert set(reference) == set(kernel)
     for name, value in reference.items():
         other = kernel[name]
         if isinstance(value, dict):
-            _assert_states_close(value, other)
+            _assert_states_close(value, other, relative)
         elif isinstance(value, tuple):
             for a, b in zip(value, other):
-                assert np.allclose(a, b, rtol=0.0, atol=RELATIVE * np.abs(a).max()), name
+                assert np.allclose(a, b, rtol=0.0, atol=relative * np.abs(a).max()), name
         elif isinstance(value, np.ndarray):
             assert value.shape == other.shape
-            assert np.allclose(value, other, rtol=0.0, atol=RELATIVE * np.abs(value).max()), name
+            assert np.allclose(value, other, rtol=0.0, atol=relative * np.abs(value).max()), name
         else:
             assert value == other, name
 
@@ -133,6 +151,46 @@ def test_kernel_matches_the_reference_in_every_variant(config, trained, inputs, 
     reference, kernel = _pair(config, trained, name)
     _assert_equal_to_rounding(_run(reference, inputs["panda_collision"]), _run(kernel, inputs["panda_collision"]))
     _assert_states_close(reference.observer.state(), kernel.observer.state())
+
+
+@pytest.fixture(scope="module")
+def posed(config, trained, inputs):
+    """models/panda with a KMP taking q̇ with q (joints 1, 5) or with g (joint 3), fitted small on the contact bag's
+    residuals, and an augmentation with every torque effect (``AUGMENTATION``)."""
+    data = training_data(RobotModel.from_config(config), [inputs["panda_contact"]])
+    kmp = fit_kmp(data.qd, second_inputs(POSE_INPUTS, data.q, data.g), data.tau_r, POSE_INPUTS, n_components=6,
+                  n_support=30)
+    return replace(trained, residual=kmp, augmentation=parse_augmentation(AUGMENTATION, config.joint_names))
+
+
+def test_the_model_kernels_equal_their_references(posed, inputs):
+    """``kmp_predict_pose`` and ``augmentation_torque`` against ``KMPResidualModel.predict`` and
+    ``Augmentation.joint_torque`` on the bag's samples and 1 rad(/s) away from them: the means and τ_aug to 1e-12 N·m
+    (measured 1e-14), the variances to 1e-10 relative (measured 2e-12: σ_f² − ‖W e‖² cancels digits near the data)."""
+    kmp, augmentation = posed.residual, posed.augmentation
+    pose, entries = KVARKKernelFilter._pose_kmp(kmp), _augmentation_entries(augmentation)
+    data, rng = inputs["panda_collision"], np.random.default_rng(4)
+    mean, var, torque = np.empty(7), np.empty(7), np.empty(7)
+    for k in range(0, len(data.stamp), 25):
+        q, qd = data.q[k] + rng.normal(scale=0.5, size=7), data.qd[k] + rng.normal(scale=0.5, size=7)
+        g = rng.normal(scale=10.0, size=7)
+        kmp_predict_pose(qd, q, g, *pose, VARIANCE_FLOOR, mean, var)
+        reference_mean, reference_var = kmp.predict(qd, q, g)
+        assert np.abs(mean - reference_mean).max() < 1e-12
+        assert np.abs(var / reference_var - 1.0).max() < 1e-10
+        augmentation_torque(q, qd, data.tau_m[k], *entries, torque)
+        assert np.abs(torque - augmentation.joint_torque(q, qd, data.tau_m[k])).max() < 1e-12
+
+
+def test_pose_inputs_and_the_augmentation_are_compiled(config, posed, inputs):
+    """A KMP with second inputs and a model augmentation run compiled (``core.model_kernels``): the same estimates
+    as the reference on the collision bag, and the same final state to 1e-10 of each array's largest entry: the
+    two-input variances differ by ~2e-12 relative (the test above), which the onset detector's running sums carry
+    to 4e-12 of their size (measured), beyond RELATIVE's 1e-12 but 25 × inside this bound."""
+    reference, kernel = _pair(config, posed)
+    assert kernel.observer._pose is not None and kernel._compiled._aug_entries is not None
+    _assert_equal_to_rounding(_run(reference, inputs["panda_collision"]), _run(kernel, inputs["panda_collision"]))
+    _assert_states_close(reference.observer.state(), kernel.observer.state(), relative=1e-10)
 
 
 def test_end_effector_axes_the_static_friction_band_and_the_interval_factors(config, trained, inputs):
@@ -252,28 +310,32 @@ def test_the_difference_form_runs_the_numpy_filter(config, trained):
     assert estimator.compiled is False
 
 
-def test_nothing_compiles_after_construction(config, trained, inputs):
+@pytest.mark.parametrize("model", ["trained", "posed"])
+def test_nothing_compiles_after_construction(config, inputs, model, request):
     """The kernels compile (or load from the cache) when the estimator is built, never while it steps."""
-    kernel = Estimator.from_config(numba_of(config), trained, "kvark")
-    dispatchers = [value for value in vars(step_kernel).values() if isinstance(value, numba.core.dispatcher.Dispatcher)]
+    kernel = Estimator.from_config(numba_of(config), request.getfixturevalue(model), "kvark")
+    dispatchers = [value for module in (step_kernel, model_kernels) for value in vars(module).values()
+                   if isinstance(value, numba.core.dispatcher.Dispatcher)]
     before = {dispatcher: len(dispatcher.signatures) for dispatcher in dispatchers}
     _run(kernel, inputs["panda_contact"])
     assert {dispatcher: len(dispatcher.signatures) for dispatcher in dispatchers} == before
 
 
-def test_the_kernels_depend_on_no_other_module():
-    """numba's cache is keyed on step_kernel.py alone, so every global its compiled functions read is defined in that
-    file (or is numba, numpy, math or a builtin): no other module's function or constant can go stale in the cache."""
-    tree = ast.parse(Path(step_kernel.__file__).read_text())
+@pytest.mark.parametrize("module, count", [(step_kernel, 10), (model_kernels, 2)])
+def test_the_kernels_depend_on_no_other_module(module, count):
+    """numba's cache is keyed on a kernel's own file alone, so every global its compiled functions read is defined in
+    that file (or is numba, numpy, math or a builtin): no other module's function or constant can go stale."""
+    tree = ast.parse(Path(module.__file__).read_text())
     defined = {node.name for node in tree.body if isinstance(node, ast.FunctionDef)}
     defined |= {target.id for node in tree.body if isinstance(node, ast.Assign) for target in ast.walk(node)
                 if isinstance(target, ast.Name) and isinstance(target.ctx, ast.Store)}
     allowed = defined | {"np", "math", "numba"} | set(vars(builtins))
-    kernels = [value for value in vars(step_kernel).values() if isinstance(value, numba.core.dispatcher.Dispatcher)]
-    assert len(kernels) >= 10
+    kernels = [value for value in vars(module).values() if isinstance(value, numba.core.dispatcher.Dispatcher)
+               and value.py_func.__module__ == module.__name__]
+    assert len(kernels) >= count
     for kernel in kernels:
         code = kernel.py_func.__code__
-        read = {name for name in code.co_names if name in vars(step_kernel) or name in vars(builtins)}
+        read = {name for name in code.co_names if name in vars(module) or name in vars(builtins)}
         assert read <= allowed, (code.co_name, read - allowed)
 
 

@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from kvark_ros.core.augmentation import TANH_EPSILON, Augmentation
 from kvark_ros.core.config import EstimatorConfig
+from kvark_ros.core.model_kernels import (A_COULOMB, A_DRIVE_GAIN, A_OFFSET, A_RIPPLE, A_STRIBECK, A_VISCOUS,
+                                          augmentation_torque)
 from kvark_ros.core.observers.kvark_kernel import KVARKKernelFilter
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.core.step_kernel import (AUGMENTED, DIVERGED, E_DAMPING, E_PARAMS, E_PRIOR_FORCE, E_PRIOR_MOMENT,
@@ -44,6 +47,7 @@ class CompiledStep:
         self.no_weak.flags.writeable = False
         augmentation = robot.augmentation
         self._augmentation = augmentation if augmentation is not None and augmentation.torque_effects else None
+        self._aug_entries = None if self._augmentation is None else _augmentation_entries(self._augmentation)
         self._band, self._scale = band, scale
         if band is not None:
             self.rows[R_BAND] = band
@@ -83,8 +87,8 @@ class CompiledStep:
     def _terms(self, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> np.ndarray:
         """The sample's pinocchio passes (into ``robot.terms``) and τ_aug; returns J (6, n) in base axes."""
         jac = self.robot.compute_terms(q, qd)
-        if self._augmentation is not None:
-            self.rows[R_AUG] = self._augmentation.joint_torque(q, qd, tau_m)
+        if self._aug_entries is not None:
+            augmentation_torque(q, qd, tau_m, *self._aug_entries, self.rows[R_AUG])
         return jac
 
     def _run(self, flags: int, dt: float, qd: np.ndarray, tau_m: np.ndarray, jac: np.ndarray, rotation: np.ndarray,
@@ -126,3 +130,23 @@ class CompiledStep:
                                         wrench, wrench_cov, directions)
             weak, diverged = directions[:, :count], not finite
         return (code & SINGULAR != 0, diverged, statistic, excess) + outputs + (rotation, jac, weak)
+
+
+_CODES = {"coulomb_friction": A_COULOMB, "viscous_friction": A_VISCOUS, "stribeck_friction": A_STRIBECK,
+          "drive_gain": A_DRIVE_GAIN, "torque_offset": A_OFFSET, "position_ripple": A_RIPPLE}
+
+
+def _augmentation_entries(augmentation: Augmentation) -> tuple[np.ndarray, ...]:
+    """``augmentation_torque``'s arguments for ``augmentation.torque_effects``: one entry per effect and joint, in
+    the order ``Augmentation.joint_torque`` adds them (codes, joints, params [ε, v_s or k], θ (m, 2))."""
+    codes, joints, params, theta = [], [], [], []
+    for effect in augmentation.torque_effects:
+        variant = effect.variant
+        second = variant.get("stribeck_velocity", variant.get("cycles_per_rev", 0.0))
+        for row, joint in enumerate(effect.joints):
+            codes.append(_CODES[effect.name])
+            joints.append(int(joint))
+            params.append((variant.get("epsilon", TANH_EPSILON), second))
+            theta.append(np.pad(np.asarray(effect.theta[row], dtype=float), (0, 2 - effect.theta.shape[1])))
+    return (np.array(codes, dtype=np.int64), np.array(joints, dtype=np.int64), np.array(params, dtype=float),
+            np.array(theta, dtype=float))

@@ -29,6 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from kvark_ros.core.config import FilterSettings
+from kvark_ros.core.model_kernels import kmp_predict_pose
 from kvark_ros.core.observers.base import DEFAULT_SAMPLE_PERIOD, FilterTuning, PerSample, ResidualPredictor
 from kvark_ros.core.observers.kvark_filter import NIS_SCALE_BOUNDS
 from kvark_ros.core.observers.kvark_momentum import R_FLOOR, KVARKMomentumFilter
@@ -42,7 +43,8 @@ from kvark_ros.core.step_kernel import (C_NEG_HALF_INV_LS2, C_Q_P, C_Q_TAU, C_R,
                                         P_EWMA_RATE, P_FORGET, P_MAX_RATIO, P_NIS_HIGH, P_NIS_LOW, P_NIS_RATE,
                                         P_PRIOR_DOF, P_RHO, P_THRESHOLD, P_VARIANCE_FLOOR, PARAMS, V_A, V_B, V_C,
                                         V_MEAN, V_NIS, V_P_HAT, V_Q, V_R, V_SCALE, V_SIGMA_D, V_TAU, V_VAR,
-                                        V_VB_DOF, V_VB_SCALE, kvark_step, split_constants, split_state, state_size)
+                                        V_VB_DOF, V_VB_SCALE, kvark_step, split_constants,
+                                        split_state, state_size)
 
 
 class KernelState:
@@ -149,6 +151,8 @@ class KVARKKernelFilter(KVARKMomentumFilter):
             consts[C_SIGMA_F2], consts[C_VAR_SCALE] = residual._sigma_f2, residual._var_scale
             support_points[:] = residual._s
             weights_t[:] = np.swapaxes(residual._weights, 1, 2)
+        self._pose = self._pose_kmp(residual) if isinstance(residual, KMPResidualModel) and residual.needs else None
+        self._no_g = np.zeros(n)
         window = self.window
         stride = window.stride if window is not None else 1
         self._params[P_FORGET] = window.forgetting ** stride if window is not None else 1.0
@@ -164,6 +168,18 @@ class KVARKKernelFilter(KVARKMomentumFilter):
                                  self._vb_iw, self.vb_smoothed, self.vb_iterations, WINDOW_SNAPSHOTS],
                                 dtype=np.int64)                 # in step_kernel's O_* order
         self._compile()
+
+    @staticmethod
+    def _pose_kmp(residual: KMPResidualModel) -> tuple[np.ndarray, ...]:
+        """``kmp_predict_pose``'s constant arguments for a KMP with second inputs (its rows ``K_*``, s, s₂, Wᵀ, L_K⁻ᵀ)."""
+        n, n_support = residual._s.shape
+        pose = np.array([residual._neg_half_inv_ls2[:, 0], residual._neg_half_inv_ls2_z[:, 0], residual._sigma_f2,
+                         residual._var_scale, residual._takes_q, residual._takes_g, residual._two_input], dtype=float)
+        floor = (residual._floor_weights if residual._floor_weights is not None
+                 else np.zeros((n, n_support, n_support)))
+        return (pose, np.ascontiguousarray(residual._s), np.ascontiguousarray(residual._s2),
+                np.ascontiguousarray(np.swapaxes(residual._weights, 1, 2)),
+                np.ascontiguousarray(np.swapaxes(floor, 1, 2)))
 
     def _make_window(self, *args) -> WindowVB:
         return PackedWindowVB(self.packed, *args)
@@ -216,7 +232,12 @@ class KVARKKernelFilter(KVARKMomentumFilter):
                 if self.Sigma_d is None:
                     self.Sigma_d = np.zeros(self.n)
             self._has_prediction = self._has_prediction or self._kmp_inside
-        if not self._kmp_inside:
+        if self._pose is not None and q is not None:     # compiled too (zeros for an unused g)
+            vec = self.packed.vec
+            kmp_predict_pose(qd, q, self._no_g if g is None else g, *self._pose, VARIANCE_FLOOR, vec[V_MEAN],
+                             vec[V_VAR])
+            self._has_prediction = True
+        elif not self._kmp_inside:
             self.prediction = self.residual.predict(qd, q, g) if self.needs else self.residual.predict(qd)
 
     def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,

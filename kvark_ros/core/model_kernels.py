@@ -1,0 +1,87 @@
+"""Compiled evaluations of the trained model that ``core.compiled_step`` calls from Python once per sample, beside
+``step_kernel.estimate_step``: the KMP with a second input (``kmp_predict_pose``) and the augmentation's joint torque
+τ_aug (``augmentation_torque``). Each equals its numpy reference (``KMPResidualModel.predict``,
+``Augmentation.joint_torque``) to rounding (``test/test_kernel.py``); they cost 3-15 µs where the references cost
+30-90 µs per sample.
+
+Like ``step_kernel`` (whose docstring says why) every number comes from the arguments or from this file's own
+constants: numba's on-disk cache is keyed on this file alone. No kernel of ``step_kernel`` calls these.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from kvark_ros.core.step_kernel import _jit
+
+# Rows of ``kmp_predict_pose``'s ``pose`` (7, n): −1/(2ℓ²), −1/(2ℓ_z²), σ_f², N/λ₂, takes q, takes g, two-input.
+K_LS, K_LS_Z, K_SIGMA_F2, K_VAR_SCALE, K_TAKES_Q, K_TAKES_G, K_TWO_INPUT = range(7)
+
+
+@_jit
+def kmp_predict_pose(qd: np.ndarray, q: np.ndarray, g: np.ndarray, pose: np.ndarray, support: np.ndarray,
+                     support2: np.ndarray, weights_t: np.ndarray, floor_weights_t: np.ndarray, floor: float,
+                     mean: np.ndarray, var: np.ndarray) -> None:
+    """``KMPResidualModel.predict`` of a model with a second input (q_j or g_j) on some joints (docs/method.md
+    §3.7), into ``mean``, ``var`` (n,): as ``kmp_predict`` with the second input z_j = takes_q q_j + takes_g g_j in
+    the kernel, and for two-input joints the far-field floor σ_f²(1 − ‖L_K⁻¹e‖²) (``floor_weights_t`` (n, N, N),
+    L_K⁻¹ transposed; zeros on the others). ``support2`` (n, N): the support points' second inputs."""
+    n, n_support = support.shape
+    rows = weights_t.shape[2]
+    w, e, f = np.empty(rows), np.empty(n_support), np.empty(n_support)
+    for j in range(n):
+        z = pose[K_TAKES_Q, j] * q[j] + pose[K_TAKES_G, j] * g[j]
+        w[:] = 0.0
+        nearest = 0.0
+        for i in range(n_support):
+            a, b = qd[j] - support[j, i], z - support2[j, i]
+            e[i] = np.exp(a * a * pose[K_LS, j] + b * b * pose[K_LS_Z, j])        # k_*/σ_f², eq. 21
+            nearest = max(nearest, e[i])
+            for r in range(rows):
+                w[r] += weights_t[j, i, r] * e[i]
+        sigma_f2 = pose[K_SIGMA_F2, j]
+        if pose[K_TWO_INPUT, j] != 0.0:                                           # the GP on every support point
+            f[:] = 0.0
+            for i in range(n_support):                                            # L_K⁻¹ e, column by column
+                for r in range(n_support):
+                    f[r] += floor_weights_t[j, i, r] * e[i]
+            norm2 = 0.0
+            for r in range(n_support):
+                norm2 += f[r] * f[r]
+            far = sigma_f2 * max(1.0 - norm2, 0.0)
+        else:
+            far = sigma_f2 * (1.0 - nearest * nearest)
+        quad = 0.0
+        for r in range(1, rows):
+            quad += w[r] * w[r]
+        mean[j] = w[0]                                                              # eq. 22
+        var[j] = max(max(pose[K_VAR_SCALE, j] * (sigma_f2 - quad), far), floor)    # eq. 23, floors
+
+
+# Codes of ``augmentation_torque``'s entries (``core.augmentation.TORQUE_EFFECTS``).
+A_COULOMB, A_VISCOUS, A_STRIBECK, A_DRIVE_GAIN, A_OFFSET, A_RIPPLE = range(6)
+
+
+@_jit
+def augmentation_torque(q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray, codes: np.ndarray, joints: np.ndarray,
+                        params: np.ndarray, theta: np.ndarray, out: np.ndarray) -> None:
+    """τ_aug(q, q̇, τ_m) (n,) N·m into ``out``: per entry m, joint ``joints[m]``, the effect ``codes[m]``'s columns
+    (``augmentation.joint_columns``; ``params[m]``: tanh width ε, then v_s or cycles per revolution k) weighted by
+    ``theta[m]`` (two columns, the second used by the ripple only), added in the reference's order."""
+    out[:] = 0.0
+    for m in range(codes.shape[0]):
+        j, code, a = joints[m], codes[m], theta[m, 0]
+        if code == A_COULOMB:
+            out[j] += np.tanh(qd[j] / params[m, 0]) * a
+        elif code == A_VISCOUS:
+            out[j] += qd[j] * a
+        elif code == A_STRIBECK:
+            v = qd[j] / params[m, 1]
+            out[j] += np.exp(-(v * v)) * np.tanh(qd[j] / params[m, 0]) * a
+        elif code == A_DRIVE_GAIN:
+            out[j] += tau_m[j] * a
+        elif code == A_OFFSET:
+            out[j] += -1.0 * a
+        else:
+            k = params[m, 1]
+            out[j] += -np.sin(k * q[j]) * a
+            out[j] += -np.cos(k * q[j]) * theta[m, 1]

@@ -9,9 +9,9 @@ reference's ``STATE`` (same names, shapes and values), so ``state``/``load_state
 
 Covered: the momentum form in every variant (``kf``, ``kmp_kf``, ``kmp_kf_ewma``, ``kmp_kf_nis``, and the VB
 variants in the readings ``window``, ``paper`` and ``smoothed``, with or without the onset detector). A q̇-only
-KMP residual model (eqs. 21-23 and the far-field floor, §3.3, §3.6) is evaluated inside the kernel; any other
-residual predictor (pose inputs, the learned baselines, the oracle) is called in Python and its mean and
-variance passed in. The difference form (``KVARKFilter``, §4.1) has no kernel: ``make_observer`` builds the
+KMP residual model (eqs. 21-23 and the far-field floor, §3.3, §3.6) is evaluated inside the kernel, a KMP with
+second inputs (§3.7) by ``model_kernels.kmp_predict_pose`` before it; any other residual predictor (the learned
+baselines, the oracle) is called in Python and its mean and variance passed in. The difference form (``KVARKFilter``, §4.1) has no kernel: ``make_observer`` builds the
 numpy filter for it whichever ``filter.kernel`` is set.
 
 The kernel (``kvark_step``) lives in ``kvark_ros.core.step_kernel`` with the compiled ``Estimator.step`` that
@@ -215,7 +215,7 @@ class KVARKKernelFilter(KVARKMomentumFilter):
                 g: np.ndarray | None = None) -> None:
         """What precedes ``kvark_step`` in Python: the first step after a reset primes the state (p̂ = p_{k−1}, every
         snapshot at τ̂_0 as ``WindowVB.predict``, the per-sample VB's prior at its steady state with mean Σ_d0 = q_τ h
-        as ``_vb_update``); a residual model other than a q̇-only KMP is evaluated."""
+        as ``_vb_update``); a residual model other than a q̇-only KMP is evaluated (a KMP with second inputs compiled)."""
         if self._vb_iw and not self._has_Sigma_d:
             rho = self.vb_forgetting
             self.vb_dof = np.full(self.n, 2.0 + (1.0 / (1.0 - rho) if rho < 1.0 else 1.0))

@@ -11,8 +11,9 @@ Covered: the momentum form in every variant (``kf``, ``kmp_kf``, ``kmp_kf_ewma``
 variants in the readings ``window``, ``paper`` and ``smoothed``, with or without the onset detector). A q̇-only
 KMP residual model (eqs. 21-23 and the far-field floor, §3.3, §3.6) is evaluated inside the kernel, a KMP with
 second inputs (§3.7) by ``model_kernels.kmp_predict_pose`` before it; any other residual predictor (the learned
-baselines, the oracle) is called in Python and its mean and variance passed in. The difference form (``KVARKFilter``, §4.1) has no kernel: ``make_observer`` builds the
-numpy filter for it whichever ``filter.kernel`` is set.
+baselines, the oracle) is called in Python and its mean and variance passed in. The difference form
+(``KVARKFilter``, §4.1) has no kernel: ``make_observer`` builds the numpy filter for it whichever
+``filter.kernel`` is set.
 
 The kernel (``kvark_step``) lives in ``kvark_ros.core.step_kernel`` with the compiled ``Estimator.step`` that
 calls it (numba's cache sees one file). It takes the state as two buffers (``KernelState``: one float64, one
@@ -171,7 +172,7 @@ class KVARKKernelFilter(KVARKMomentumFilter):
 
     @staticmethod
     def _pose_kmp(residual: KMPResidualModel) -> tuple[np.ndarray, ...]:
-        """``kmp_predict_pose``'s constant arguments for a KMP with second inputs (its rows ``K_*``, s, s₂, Wᵀ, L_K⁻ᵀ)."""
+        """``kmp_predict_pose``'s constant arguments for a KMP with second inputs: rows ``K_*``, s, s₂, Wᵀ, L_K⁻ᵀ."""
         n, n_support = residual._s.shape
         pose = np.array([residual._neg_half_inv_ls2[:, 0], residual._neg_half_inv_ls2_z[:, 0], residual._sigma_f2,
                          residual._var_scale, residual._takes_q, residual._takes_g, residual._two_input], dtype=float)
@@ -215,7 +216,7 @@ class KVARKKernelFilter(KVARKMomentumFilter):
                 g: np.ndarray | None = None) -> None:
         """What precedes ``kvark_step`` in Python: the first step after a reset primes the state (p̂ = p_{k−1}, every
         snapshot at τ̂_0 as ``WindowVB.predict``, the per-sample VB's prior at its steady state with mean Σ_d0 = q_τ h
-        as ``_vb_update``); a residual model other than a q̇-only KMP is evaluated (a KMP with second inputs compiled)."""
+        as ``_vb_update``); a residual model other than a q̇-only KMP is evaluated (one with second inputs compiled)."""
         if self._vb_iw and not self._has_Sigma_d:
             rho = self.vb_forgetting
             self.vb_dof = np.full(self.n, 2.0 + (1.0 / (1.0 - rho) if rho < 1.0 else 1.0))

@@ -44,8 +44,7 @@ from kvark_ros.core.step_kernel import (C_NEG_HALF_INV_LS2, C_Q_P, C_Q_TAU, C_R,
                                         P_EWMA_RATE, P_FORGET, P_MAX_RATIO, P_NIS_HIGH, P_NIS_LOW, P_NIS_RATE,
                                         P_PRIOR_DOF, P_RHO, P_THRESHOLD, P_VARIANCE_FLOOR, PARAMS, V_A, V_B, V_C,
                                         V_MEAN, V_NIS, V_P_HAT, V_Q, V_R, V_SCALE, V_SIGMA_D, V_TAU, V_VAR,
-                                        V_VB_DOF, V_VB_SCALE, kvark_step, split_constants,
-                                        split_state, state_size)
+                                        V_VB_DOF, V_VB_SCALE, kvark_step, split_constants, split_state, state_size)
 
 
 class KernelState:

@@ -45,6 +45,16 @@ def test_bench_prints_one_json_line_last(capsys):
     assert set(summary["observers"]) == {"kvark", "kf"}
 
 
+def test_bench_times_a_given_model_directory(capsys):
+    """--model: the trained model is timed as it is (no synthetic training), compiled by default."""
+    model = Path(__file__).resolve().parents[1] / "models" / "panda"
+    assert main(["bench", "--model", str(model), "--duration", "1"]) == 0
+    out = capsys.readouterr().out
+    assert f"timing the model {model}" in out and "training a residual model" not in out
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["observers"]["kvark"]["kernel"] == "numba" and summary["steps"] == 500
+
+
 def test_user_errors_give_one_line_and_exit_code(capsys, tmp_path):
     assert main(["bench", "--config", str(tmp_path / "missing.yaml")]) == 1
     err = capsys.readouterr().err.strip()

@@ -1,8 +1,8 @@
 """``kvark bench``: per-step latency of the Estimator (robot model + observer + wrench + contact tests).
 
-Trains a residual model on a synthetic free-motion stream of the configured robot, then steps
-a fresh Estimator per observer over a synthetic stream with a step external torque, timing each
-``Estimator.step`` call. Every observer gets a row (the oracle needs a plant file and is left out); its
+Trains a residual model on a synthetic free-motion stream of the configured robot (or takes a trained model
+directory, ``--model``: a real robot's with its residual inputs and augmentation), then steps a fresh Estimator
+per observer over a synthetic stream with a step external torque, timing each ``Estimator.step`` call. Every observer gets a row (the oracle needs a plant file and is left out); its
 ``kernel`` column says whether its step ran compiled (``filter.kernel: numba`` compiles the K-VARK family:
 kvark, its ablations, gmr_gp, gpadkf, nnadkf) or as numpy. The last printed line is one JSON object.
 """
@@ -18,6 +18,7 @@ import numpy as np
 
 from kvark_ros.core.config import OBSERVER_NAMES, default_config_path, load_config, parse_observers
 from kvark_ros.core.estimator import Estimator
+from kvark_ros.core.model_store import load_model
 from kvark_ros.core.observers import LEARNED_BASELINE_VARIANTS, make_observer
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream, train_synthetic
@@ -39,6 +40,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
                              "default: kvark")
     parser.add_argument("--duration", type=float, default=10.0, help="length of the timed stream, s (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the synthetic streams (default 0)")
+    parser.add_argument("--model", help="time this trained model directory (its residual inputs, augmentation, band "
+                                        "and interval factors) instead of one trained on the synthetic stream; the "
+                                        "RMSE column then compares it with the synthetic plant, not its own robot")
     parser.add_argument("--kernel", choices=("numpy", "numba"),
                         help="implementation of Estimator.step with a K-VARK filter (filter.kernel; default: the "
                              "config's)")
@@ -55,19 +59,24 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config or default_config_path(args.robot))
     if args.kernel:
         config = replace(config, filter=replace(config.filter, kernel=args.kernel))
-    robot = RobotModel.from_config(config)
-    print(f"training a residual model on a 20 s synthetic free-motion stream of {config.robot} ...", flush=True)
-    trained = train_synthetic(robot, config.robot, seed=args.seed,
-                              baselines=any(name in LEARNED_BASELINE_VARIANTS for name in names))
+    if args.model:
+        trained = load_model(args.model, config.joint_names)
+        robot = RobotModel.from_config(config, trained.augmentation)
+        print(f"timing the model {args.model} (residual inputs {', '.join(trained.residual.inputs)})", flush=True)
+    else:
+        robot = RobotModel.from_config(config)
+        print(f"training a residual model on a 20 s synthetic free-motion stream of {config.robot} ...", flush=True)
+        trained = train_synthetic(robot, config.robot, seed=args.seed,
+                                  baselines=any(name in LEARNED_BASELINE_VARIANTS for name in names))
     torque = np.linspace(2.0, 0.5, robot.n)
     stream = synthetic_stream(robot, args.duration, seed=args.seed + 1, external=step_torque(args.duration / 4, torque))
     results = {}
     print(f"{'observer':<12} {'kernel':>6} {'steps':>6} {'p50 µs':>8} {'p99 µs':>8} {'max µs':>8} {'RMSE N·m':>9}")
     for name in names:
-        warm_up = Estimator(config, robot, make_observer(name, trained, config.filter))
+        warm_up = Estimator(config, robot, make_observer(name, trained, config.filter), trained)
         for k in range(min(WARM_UP_STEPS, len(stream.stamp))):   # caches and allocator settle, untimed
             warm_up.step(stream.stamp[k], stream.q[k], stream.qd[k], stream.tau_m[k])
-        estimator = Estimator(config, robot, make_observer(name, trained, config.filter))
+        estimator = Estimator(config, robot, make_observer(name, trained, config.filter), trained)
         latency, error = time_estimator(estimator, stream)
         results[name] = {"kernel": "numba" if estimator.compiled else "numpy", "steps": len(latency),
                          "p50_us": round(float(np.percentile(latency, 50)), 2),

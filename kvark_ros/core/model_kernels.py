@@ -19,15 +19,14 @@ K_LS, K_LS_Z, K_SIGMA_F2, K_VAR_SCALE, K_TAKES_Q, K_TAKES_G, K_TWO_INPUT = range
 
 @_jit
 def kmp_predict_pose(qd: np.ndarray, q: np.ndarray, g: np.ndarray, pose: np.ndarray, support: np.ndarray,
-                     support2: np.ndarray, weights_t: np.ndarray, floor_weights_t: np.ndarray, floor: float,
-                     mean: np.ndarray, var: np.ndarray) -> None:
+                     support2: np.ndarray, weights_t: np.ndarray, floor_weights_t: np.ndarray, w: np.ndarray,
+                     e: np.ndarray, f: np.ndarray, floor: float, mean: np.ndarray, var: np.ndarray) -> None:
     """``KMPResidualModel.predict`` of a model with a second input (q_j or g_j) on some joints (docs/method.md
     §3.7), into ``mean``, ``var`` (n,): as ``kmp_predict`` with the second input z_j = takes_q q_j + takes_g g_j in
     the kernel, and for two-input joints the far-field floor σ_f²(1 − ‖L_K⁻¹e‖²) (``floor_weights_t`` (n, N, N),
-    L_K⁻¹ transposed; zeros on the others). ``support2`` (n, N): the support points' second inputs."""
+    L_K⁻¹ transposed; zeros on the others). ``w`` (N+1,), ``e``, ``f`` (N,): work space the caller allocates once. ``support2`` (n, N): the support points' second inputs."""
     n, n_support = support.shape
     rows = weights_t.shape[2]
-    w, e, f = np.empty(rows), np.empty(n_support), np.empty(n_support)
     for j in range(n):
         z = pose[K_TAKES_Q, j] * q[j] + pose[K_TAKES_G, j] * g[j]
         w[:] = 0.0

@@ -171,7 +171,7 @@ class KVARKKernelFilter(KVARKMomentumFilter):
 
     @staticmethod
     def _pose_kmp(residual: KMPResidualModel) -> tuple[np.ndarray, ...]:
-        """``kmp_predict_pose``'s constant arguments for a KMP with second inputs: rows ``K_*``, s, s₂, Wᵀ, L_K⁻ᵀ."""
+        """``kmp_predict_pose``'s array arguments for a KMP with second inputs: rows ``K_*``, s, s₂, Wᵀ, L_K⁻ᵀ, work space."""
         n, n_support = residual._s.shape
         pose = np.array([residual._neg_half_inv_ls2[:, 0], residual._neg_half_inv_ls2_z[:, 0], residual._sigma_f2,
                          residual._var_scale, residual._takes_q, residual._takes_g, residual._two_input], dtype=float)
@@ -179,7 +179,8 @@ class KVARKKernelFilter(KVARKMomentumFilter):
                  else np.zeros((n, n_support, n_support)))
         return (pose, np.ascontiguousarray(residual._s), np.ascontiguousarray(residual._s2),
                 np.ascontiguousarray(np.swapaxes(residual._weights, 1, 2)),
-                np.ascontiguousarray(np.swapaxes(floor, 1, 2)))
+                np.ascontiguousarray(np.swapaxes(floor, 1, 2)), np.empty(n_support + 1), np.empty(n_support),
+                np.empty(n_support))
 
     def _make_window(self, *args) -> WindowVB:
         return PackedWindowVB(self.packed, *args)

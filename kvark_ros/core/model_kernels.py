@@ -24,7 +24,8 @@ def kmp_predict_pose(qd: np.ndarray, q: np.ndarray, g: np.ndarray, pose: np.ndar
     """``KMPResidualModel.predict`` of a model with a second input (q_j or g_j) on some joints (docs/method.md
     §3.7), into ``mean``, ``var`` (n,): as ``kmp_predict`` with the second input z_j = takes_q q_j + takes_g g_j in
     the kernel, and for two-input joints the far-field floor σ_f²(1 − ‖L_K⁻¹e‖²) (``floor_weights_t`` (n, N, N),
-    L_K⁻¹ transposed; zeros on the others). ``w`` (N+1,), ``e``, ``f`` (N,): work space the caller allocates once. ``support2`` (n, N): the support points' second inputs."""
+    L_K⁻¹ transposed; zeros on the others). ``support2`` (n, N): the support points' second inputs; ``w`` (N+1,),
+    ``e``, ``f`` (N,): work space the caller allocates once."""
     n, n_support = support.shape
     rows = weights_t.shape[2]
     for j in range(n):

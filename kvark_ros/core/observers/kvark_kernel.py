@@ -171,7 +171,7 @@ class KVARKKernelFilter(KVARKMomentumFilter):
 
     @staticmethod
     def _pose_kmp(residual: KMPResidualModel) -> tuple[np.ndarray, ...]:
-        """``kmp_predict_pose``'s array arguments for a KMP with second inputs: rows ``K_*``, s, s₂, Wᵀ, L_K⁻ᵀ, work space."""
+        """``kmp_predict_pose``'s arrays for a KMP with second inputs: rows ``K_*``, s, s₂, Wᵀ, L_K⁻ᵀ, work space."""
         n, n_support = residual._s.shape
         pose = np.array([residual._neg_half_inv_ls2[:, 0], residual._neg_half_inv_ls2_z[:, 0], residual._sigma_f2,
                          residual._var_scale, residual._takes_q, residual._takes_g, residual._two_input], dtype=float)

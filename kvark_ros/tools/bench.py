@@ -2,9 +2,10 @@
 
 Trains a residual model on a synthetic free-motion stream of the configured robot (or takes a trained model
 directory, ``--model``: a real robot's with its residual inputs and augmentation), then steps a fresh Estimator
-per observer over a synthetic stream with a step external torque, timing each ``Estimator.step`` call. Every observer gets a row (the oracle needs a plant file and is left out); its
-``kernel`` column says whether its step ran compiled (``filter.kernel: numba`` compiles the K-VARK family:
-kvark, its ablations, gmr_gp, gpadkf, nnadkf) or as numpy. The last printed line is one JSON object.
+per observer over a synthetic stream with a step external torque, timing each ``Estimator.step`` call. Every
+observer gets a row (the oracle needs a plant file and is left out); its ``kernel`` column says whether its
+step ran compiled (``filter.kernel: numba`` compiles the K-VARK family: kvark, its ablations, gmr_gp, gpadkf,
+nnadkf) or as numpy. The last printed line is one JSON object.
 """
 from __future__ import annotations
 

@@ -177,7 +177,8 @@ def run_observer(config: EstimatorConfig, trained: TrainedModel, inputs: Estimat
     ``~/tare``) at the first sample the arm is at rest; its outcome is in ``ObserverRun.tare``. ``truth_tau``: the
     true τ_ext (T, n) N·m, for ``ObserverRun.mahalanobis`` (its time is not counted in ``us_per_step``).
     ``estimator``: one built from the same arguments and not yet stepped (replay builds them before decoding)."""
-    estimator = estimator or Estimator.from_config(config, trained, observer=name, oracle=oracle)
+    if estimator is None:
+        estimator = Estimator.from_config(config, trained, observer=name, oracle=oracle)
     tare_stamp = None if tare_at is None else inputs.stamp[0] + tare_at
     tare_started = False
     count, n = len(inputs), estimator.robot.n

@@ -22,6 +22,7 @@ from kvark_ros.sim.plant import (PLANT_DIR, LinkErrorDraw, OracleResidual, Plant
 from kvark_ros.sim.robots import RobotSetup, robot_setup, urdf_xml
 from kvark_ros.sim.scenarios import SESSION_S, run_scenario
 from kvark_ros.sim.true_model import link_errors, links_after, moving_links, true_urdf
+from kvark_ros.tools.benchmark import training_clocks
 
 DRAW = {"seed": 3, "mass_rel": 0.15, "com_m": 0.02, "inertia_rel": 0.3}
 
@@ -281,3 +282,36 @@ def test_realistic_plant_ground_truth_closes_with_the_true_model(robot: str, sce
     assert sliding.sum() > 100
     if scenario == "payload":
         assert isinstance(spec.payload, Payload)      # the scenario's payload is τ_ext, not in the oracle's model
+
+
+def test_a_given_plant_clock_is_used_and_a_bad_one_refused() -> None:
+    """``start_time`` sets the plant clock the drifts read (the drive's offset at start_time + stamp, 1e-9 N·m as
+    above); a negative or non-finite clock is an error."""
+    spec = load_plant(_realistic("ur5"), 6)
+    out = run_scenario("ur5", "collision", seed=3, duration=0.2, plant=spec, progress=False, start_time=1234.5)
+    assert out.start_time == 1234.5
+    clock = 1234.5 + out.run.joint_states.stamp
+    offset = np.array([torque_offset_drift(out.plant, t) for t in clock])
+    np.testing.assert_allclose(out.truth.drive_torque - out.plant.drive_gain * out.run.commands.effort, offset,
+                               atol=1e-9)
+    for bad in (-1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="start_time"):
+            run_scenario("ur5", "collision", seed=3, duration=0.2, plant=spec, progress=False, start_time=bad)
+
+
+def test_the_benchmark_spreads_its_training_recordings_over_the_session() -> None:
+    """Five training clocks at the middles of five equal parts of the session: with the plants' 300 s offset
+    period they meet the drift at five phases a fifth of a period apart (the seeds' draws met one phase)."""
+    clocks = training_clocks(5)
+    np.testing.assert_allclose(clocks, SESSION_S * (np.arange(5) + 0.5) / 5)
+    phases = np.sort(np.mod(np.array(clocks) / 300.0, 1.0))
+    np.testing.assert_allclose(np.diff(phases), 0.2, atol=1e-12)
+
+
+def test_kvark_simulate_takes_the_plant_clock_and_refuses_a_negative_one(tmp_path, capsys) -> None:
+    """``--start-time`` reaches the simulation: a negative clock is a one-line error and no bag."""
+    from kvark_ros.cli import main
+    out = tmp_path / "bag"
+    assert main(["simulate", "--robot", "ur5", "--scenario", "collision", "--duration", "0.1", "--start-time",
+                 "-5", "--out", str(out)]) == 1
+    assert "start_time must be a finite time ≥ 0 s" in capsys.readouterr().err and not out.exists()

@@ -8,7 +8,7 @@ from typing import Any
 
 from kvark_ros.io import write_run
 from kvark_ros.sim.robots import ROBOTS
-from kvark_ros.sim.scenarios import SCENARIOS, run_scenario
+from kvark_ros.sim.scenarios import SCENARIOS, SESSION_S, run_scenario
 
 _DESCRIPTION = """\
 Simulate a robot arm in MuJoCo (the plant) and write a ROS 2 bag with what the real robot
@@ -46,6 +46,10 @@ def add_simulate_parser(subparsers: Any) -> argparse.ArgumentParser:
                         help="plant file (YAML) saying how the simulated robot differs from its URDF "
                              "(friction, armature, payload, drive gains, noise); default: the robot's "
                              "shipped kvark_ros/sim/plants/<robot>_default.yaml. Never written to the bag")
+    parser.add_argument("--start-time", type=float, default=None, metavar="S",
+                        help="plant clock at the first sample, s since power-on: where the plant's friction "
+                             "warm-up and torque-offset drifts stand; default: drawn from the seed within the "
+                             f"first {SESSION_S:g} s")
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
                         help="rosbag2 storage format; default: %(default)s")
     parser.add_argument("--out", metavar="BAGDIR", required=True,
@@ -69,7 +73,7 @@ def run_simulate(args: argparse.Namespace) -> int:
         return 1
     try:
         output = run_scenario(args.robot, args.scenario, args.seed, args.duration, args.plant,
-                              progress=True)
+                              progress=True, start_time=args.start_time)
         write_run(args.out, output.run, storage=args.storage, overwrite=args.overwrite)
     except ValueError as exc:          # bad plant file (PlantError), duration, existing output (BagError)
         print(f"kvark: error: {exc}", file=sys.stderr)

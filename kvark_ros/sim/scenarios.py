@@ -5,7 +5,8 @@ Timing: physics at 1 kHz (``PHYSICS_DT``), the controller at the plant file's
 stamp t_k holds what the controller saw at t_k and the command it sent then. The plant clock
 (s since power-on, for the friction and torque-offset drifts) reads ``start_time + t_k``:
 ``run_scenario`` draws ``start_time`` per seed uniformly within the first ``SESSION_S`` after
-power-on, so that recordings of one plant meet it at different temperatures, as a real robot's do.
+power-on, so that recordings of one plant meet it at different temperatures, as a real robot's do,
+unless it is given (the benchmark spreads its training recordings over the session that way).
 
 Measured signals (what a real robot reports):
   position = true q + joint_offset (the plant's encoder zero error), quantised to the encoder
@@ -378,7 +379,7 @@ def _resolve_plant(setup: RobotSetup, plant: PlantSpec | str | os.PathLike[str] 
 
 def run_scenario(robot: str, scenario: str, seed: int = 1, duration: float = 10.0,
                  plant: PlantSpec | str | os.PathLike[str] | None = None,
-                 progress: bool | None = None) -> SimulationOutput:
+                 progress: bool | None = None, start_time: float | None = None) -> SimulationOutput:
     """Simulate one scenario and return the recording with its ground truth.
 
     excitation: an optimised eq.-24/25 trajectory under joint tracking control;
@@ -388,7 +389,7 @@ def run_scenario(robot: str, scenario: str, seed: int = 1, duration: float = 10.
     collision: plain joint-space motion with a 20-40 N, 0.2 s push on a link every ~5 s.
     plant: a PlantSpec, a plant-file path, or None for the robot's default plant file
     (``kvark_ros/sim/plants/<robot>_default.yaml``). Deterministic for a seed, which also sets
-    the plant clock at the start (module docstring).
+    the plant clock at the start (module docstring) unless ``start_time`` (s since power-on, ≥ 0) is given.
     """
     wall_start = time.perf_counter()
     setup = robot_setup(robot)
@@ -396,10 +397,13 @@ def run_scenario(robot: str, scenario: str, seed: int = 1, duration: float = 10.
         raise ValueError(f"unknown scenario {scenario!r}; known: {', '.join(SCENARIOS)}")
     if not np.isfinite(duration) or duration <= 0.0:
         raise ValueError(f"duration must be > 0 s, got {duration}")
+    if start_time is not None and not (np.isfinite(start_time) and start_time >= 0.0):
+        raise ValueError(f"start_time must be a finite time ≥ 0 s since power-on, got {start_time}")
     spec = _resolve_plant(setup, plant)
     trajectory_seed, scenario_seed, noise_seed, clock_seed = np.random.SeedSequence(
         [seed, SCENARIOS.index(scenario)]).spawn(4)
-    start_time = float(np.random.default_rng(clock_seed).uniform(0.0, SESSION_S))
+    drawn = float(np.random.default_rng(clock_seed).uniform(0.0, SESSION_S))
+    start_time = drawn if start_time is None else float(start_time)
     scenario_rng = np.random.default_rng(scenario_seed)
     nominal = setup.nominal_model()
     limits = ExcitationLimits.for_robot(setup)
@@ -427,9 +431,9 @@ def run_scenario(robot: str, scenario: str, seed: int = 1, duration: float = 10.
 
 def simulate(robot: str, scenario: str, seed: int = 1, duration: float = 10.0,
              plant: PlantSpec | str | os.PathLike[str] | None = None,
-             progress: bool | None = None) -> RecordedRun:
+             progress: bool | None = None, start_time: float | None = None) -> RecordedRun:
     """The recording of ``run_scenario`` (what a bag holds); same arguments."""
-    return run_scenario(robot, scenario, seed, duration, plant, progress).run
+    return run_scenario(robot, scenario, seed, duration, plant, progress, start_time).run
 
 
 def _pushes(link: str, duration: float, rng: np.random.Generator) -> list[Push]:

@@ -18,9 +18,13 @@
    gain errors both scale with gravity), greedy selection is run ``STARTS`` times, each from
    another acceptable first effect; a later selection replaces the kept one when it has a lower
    BIC with no more effects (BIC alone, with correlated samples, lets small spurious effects in:
-   a run that trades one look-alike for the right effect ends with fewer of them). Each remaining
-   effect's reported reduction is the held-out gap of all effects but that one against all of them;
-3. refits the final set until every link it changes is physically consistent and writes
+   a run that trades one look-alike for the right effect ends with fewer of them). Every start begins
+   from the URDF's priors; a candidate's tightened priors (physical consistency) are kept only when it
+   is accepted. Each remaining effect's reported reduction is the held-out gap of all effects but that
+   one against all of them;
+3. refits the final set under the chosen start's priors until every link it changes is physically
+   consistent, drops the drive-gain and joint-offset joints that the joint fit put at a bound of their
+   prior (another effect seen through them, as at acceptance), and writes
    ``diagnosis.json``, ``augmentation.yaml`` (the accepted effects, loadable by
    ``effects.augmentation_gap``; against an augmented model, its effects first), ``report.md`` and plots
    (``gap.diagnosis_report``), with the warnings, look-alikes and raw-signal gap of ``gap.plausibility``.
@@ -182,6 +186,19 @@ def _without_saturated(fitter: Fitter, terms: Sequence[Term], term: Term, *fit: 
         term = Term(term.name, keep, term.variant)
         fit = fitter.fit([*terms, term])
     return term, fit
+
+
+def _saturated_joints(fitter: Fitter, terms: Sequence[Term], theta: np.ndarray) -> tuple[int, tuple[int, ...]] | None:
+    """(term index, joints) of the first drive-gain or joint-offset term of a joint fit θ with joints at a bound of
+    its prior (``_without_saturated``'s rule, for effects that reached the bound only when later ones joined)."""
+    pos = 0
+    for index, term in enumerate(terms):
+        if term.name in ("drive_gain", "joint_offset"):
+            bound = _at_bounds(term, theta[pos:pos + term.size], fitter.priors)
+            if np.any(bound):
+                return index, tuple(j for j, hit in zip(term.joints, bound) if hit)
+        pos += term.size
+    return None
 
 
 def _inconsistent_bodies(fitter: Fitter, term: Term, theta: np.ndarray) -> list[tuple[int, str]]:
@@ -349,6 +366,9 @@ def _greedy(fitter: Fitter, effects: Sequence[str], names: Sequence[str], first_
         for score, term, (th, cv, rt, rh) in (scored if skip else scored[:SCREEN_TOP]):
             if term.name in passed:
                 continue
+            # A candidate's tightened priors (_consistent) are kept only if it is accepted: a rejected one must not
+            # constrain the bodies of the effects already in, nor the next candidates.
+            priors_before = dict(fitter.prior_scale)
             term, (th, cv, rt, rh) = _without_saturated(fitter, terms, term, th, cv, rt, rh)
             th, cv, rt, rh = _consistent(fitter, [*terms, term], th, cv, rt, rh)
             k = sum(t.size for t in terms) + term.size
@@ -360,10 +380,12 @@ def _greedy(fitter: Fitter, effects: Sequence[str], names: Sequence[str], first_
                 log(f"[diagnose]   rejected {term.name} on {_named(term.joints, names)}: ΔBIC {new_bic - bic:+.1f}, "
                     f"{'' if problem is None else f'not physically admissible ({problem}), '}"
                     f"held-out gap {np.round(before, 4).tolist()} → {np.round(after, 4).tolist()}")
+                fitter.prior_scale = priors_before
                 continue
             if skip:
                 skip -= 1
                 passed.add(term.name)
+                fitter.prior_scale = priors_before
                 continue
             red = 1.0 - np.sqrt(np.mean(np.square(after[joints]))) / np.sqrt(np.mean(np.square(before[joints])))
             terms.append(term)
@@ -420,9 +442,11 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
     fitter.links = [robot.model.inertias[i].toDynamicParameters() for i in range(1, n)]
     log(f"[diagnose] held-out gap per joint before (N·m): {_per_joint(gap_before, robot.joint_names)}")
     log(f"[diagnose] fitting each of {len(effects)} effects alone (shared by the {STARTS} starts) ...")
-    best = None
+    best, best_priors = None, None
     first_round = _scored_candidates(fitter, [], held.gap, effects, n)    # shared by every start
+    initial_priors = dict(fitter.prior_scale)
     for start in range(STARTS):
+        fitter.prior_scale = dict(initial_priors)     # every start from the URDF's priors, not the last start's
         found = _greedy(fitter, effects, robot.joint_names, start, first_round, lambda line, k=start + 1: log(
             line.replace("[diagnose]", f"[diagnose] start {k}/{STARTS}:")))
         if found is None:
@@ -431,12 +455,21 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         log(f"[diagnose] start {start + 1}/{STARTS}: {[t.name for t in found[0]]}, BIC {found[-1]:.0f}, "
             f"weighted held-out gap {score:.4f}")
         if best is None or (found[-1] < best[-1] and len(found[0]) <= len(best[0])):
-            best = found
+            best, best_priors = found, dict(fitter.prior_scale)
     terms, theta, cov, _, r_he, _ = best
+    fitter.prior_scale = best_priors                  # the priors that selection ended with
     theta, cov, _, r_he = _consistent(fitter, terms, *fitter.fit(terms))    # the pruned set refitted jointly
     while (bad := _bad_bodies(fitter, terms, theta)):
         log(f"[diagnose] dropped {terms[bad[0][0]].name}: still physically inconsistent ({bad[0][2]})")
         terms = [t for i, t in enumerate(terms) if i != bad[0][0]]
+        theta, cov, _, r_he = _consistent(fitter, terms, *fitter.fit(terms))
+    while (saturated := _saturated_joints(fitter, terms, theta)):
+        index, at_bound = saturated
+        term = terms[index]
+        keep = tuple(j for j in term.joints if j not in at_bound)
+        log(f"[diagnose] dropped {term.name} on {_named(at_bound, robot.joint_names)}: at the bound of its prior "
+            f"once fitted with the other effects (another effect seen through it)")
+        terms = [*terms[:index], *([Term(term.name, keep, term.variant)] if keep else []), *terms[index + 1:]]
         theta, cov, _, r_he = _consistent(fitter, terms, *fitter.fit(terms))
     history = _contributions(fitter, terms, r_he)
     gap_after = _rmse(r_he)

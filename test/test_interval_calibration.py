@@ -6,7 +6,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from kvark_ros.core.calibration import COVERAGE, WARMUP, Z95, IntervalScale, interval_scale
+from kvark_ros.core.calibration import COVERAGE, WARMUP, Z95, IntervalScale, interval_scale, needed_factor
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.model_store import load_model, save_model
 from kvark_ros.core.observers import make_observer
@@ -51,6 +51,35 @@ def test_the_factor_that_covers_95_percent_of_the_contact_free_estimate_is_found
     # √(0.95·0.05/5750)/(2φ(1.96)) ≈ 0.025, 1.3 % of 1.96; 5 % is about four of them.
     np.testing.assert_allclose(found, k, rtol=0.05)
     assert WARMUP > 0 and COVERAGE == 0.95 and abs(Z95 - 1.96) < 1e-3
+
+
+def test_needed_factor_is_the_least_c_that_covers_each_sample():
+    tau, sigma, band = np.array([[2.0 * Z95, 1.0, 0.5]]), np.array([[1.0, 1.0, 2.0]]), np.array([[3.0, 1.0, 0.0]])
+    found = needed_factor(tau, sigma, band)
+    # (2 z / z)² − 3 = 1; 1 N·m is inside the band alone; no band: |τ̂| / (1.96 σ).
+    np.testing.assert_allclose(found, [[1.0, 0.0, 0.5 / (Z95 * 2.0)]], rtol=1e-12)
+    assert np.all(np.abs(tau) <= Z95 * np.sqrt((found * sigma) ** 2 + band) * (1.0 + 1e-12))     # inside at c_k
+    outside = np.abs(tau) > Z95 * np.sqrt((0.99 * found * sigma) ** 2 + band)
+    assert outside[0, 0] and outside[0, 2]                                                          # outside below
+
+
+def test_the_factor_is_read_for_the_interval_with_the_static_band_inside():
+    """Half the samples at rest, where a band of σ²_s = 3 N²·m² covers N(0, 1) all but 0.07 % of the time; half
+    sliding, where it is gone: the 5 % that may miss are all sliding ones, so c covers 90 % there,
+    1.96 c = 1.645 (c = 0.839), where without the band c = 1."""
+    samples = 6000
+    stamp = np.arange(samples) * 0.002
+    qd = np.where(np.arange(samples) % 2 == 0, 0.0, 1.0)[:, None]
+    zeros = np.zeros((samples, 1))
+    band = lambda v: 3.0 * np.exp(-np.square(v / 0.05))                       # noqa: E731
+    observer = _WhiteObserver(np.ones(1), np.ones(1), seed=2)
+    found = interval_scale(observer, [stamp], [qd], [zeros], [zeros], [zeros], [zeros], band).scale
+    # 2875 sliding samples: the 90 % quantile of |N(0, 1)| has a standard error of √(0.9·0.1/2875)/(2φ(1.645))
+    # ≈ 0.027, 1.7 % of 1.645; 5 % is three of them.
+    np.testing.assert_allclose(found, 1.6448536 / Z95, rtol=0.05)
+    plain = interval_scale(_WhiteObserver(np.ones(1), np.ones(1), seed=2), [stamp], [qd], [zeros], [zeros], [zeros],
+                           [zeros]).scale
+    np.testing.assert_allclose(plain, 1.0, rtol=0.05)
 
 
 def test_too_few_samples_are_refused():

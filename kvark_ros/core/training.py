@@ -317,11 +317,14 @@ def calibrate_intervals(trained: TrainedModel, data: TrainingData, settings: Fil
                         log: Callable[[str], None]) -> TrainedModel:
     """``trained`` with kvark's interval factors c read off its own contact-free recordings (docs/method.md §4.13)."""
     started = time.perf_counter()
+    velocity = settings.stiction_velocity
+    band = (None if trained.stiction is None or velocity == 0.0
+            else lambda qd: trained.stiction.variance(qd, velocity))
     scale = interval_scale(make_observer(CALIBRATED_OBSERVER, trained, settings),
                            [seg.stamp for seg in data.segments], [seg.qd for seg in data.segments],
                            [seg.q for seg in data.segments], [dyn.p for dyn in data.dynamics],
-                           [dyn.u for dyn in data.dynamics], [dyn.g for dyn in data.dynamics])
-    log("[train] kvark interval factors c (95 % of the contact-free τ̂ within ±1.96 c σ): "
+                           [dyn.u for dyn in data.dynamics], [dyn.g for dyn in data.dynamics], band)
+    log("[train] kvark interval factors c (95 % of the contact-free τ̂ within ±1.96 √(c²σ² + σ²_s)): "
         + ", ".join(f"{name} {value:.2f}" for name, value in zip(trained.joint_names, scale.scale))
         + f" ({time.perf_counter() - started:.1f} s)")
     return replace(trained, interval_scale=scale)

@@ -361,9 +361,10 @@ def test_a_realistic_plant_gives_an_augmentation_the_robot_model_accepts(diagnos
 
 
 def test_every_start_begins_from_the_urdf_priors_and_the_result_is_the_chosen_starts(runs, robots, monkeypatch):
-    """A candidate that comes out physically inconsistent tightens its bodies' priors (``_consistent``). Those priors
-    were kept on the fitter for every later candidate, start and the final refit: on the realistic Panda's benchmark
-    bags the final refit of start 1's effects then had a held-out gap of 0.56 N·m where start 1 itself had 0.23.
+    """A candidate that comes out physically inconsistent tightens its bodies' priors (``admissible.consistent``).
+    Those priors were kept on the fitter for every later candidate, start and the final refit: on the realistic
+    Panda's benchmark bags the final refit of start 1's effects then had a held-out gap of 0.56 N·m where start 1
+    itself had 0.23.
     Every start must begin from the URDF's priors, and the final fit must be the chosen start's."""
     starts, ends = [], []
     greedy = gap_cli._greedy

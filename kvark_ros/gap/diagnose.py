@@ -46,7 +46,6 @@ from kvark_ros.core.linalg import single_threaded_blas
 from kvark_ros.core.model_store import TrainedModel, save_model
 from kvark_ros.core.robot_model import RobotModel
 from kvark_ros.core.training import SAVGOL_WINDOW, smoothed_signals, train_model
-from kvark_ros.core.payload import inertia_problem
 from kvark_ros.core.robot_model import flange_link_parameters
 from kvark_ros.gap.effects import (
     EFFECT_NAMES,
@@ -61,6 +60,7 @@ from kvark_ros.gap.effects import (
     signals,
     variants,
 )
+from kvark_ros.gap.admissible import bad_bodies, consistent, inadmissible, saturated_joints, without_saturated
 from kvark_ros.gap.diagnosis_report import Diagnosis, write_outputs
 from kvark_ros.gap.fitting import Fitter
 from kvark_ros.gap.plausibility import (
@@ -79,7 +79,6 @@ MIN_REDUCTION = 0.05     # an effect must cut the held-out gap of its joints by 
 MIN_ABS_REDUCTION = 0.005  # N·m, and by at least this much (filter noise floor)
 DECIMATE_DT = 0.008      # s, sample spacing after smoothing (the filter passes far less than 60 Hz)
 SCREEN_TOP = 4           # candidates refitted jointly per round
-MAX_PRIOR_HALVINGS = 12  # a body's prior σ may shrink 4096-fold toward the URDF before the candidate is refused
 STARTS = 3               # greedy runs, each from another acceptable first effect (see module docstring)
 
 
@@ -161,109 +160,6 @@ def _screen_coupled(name: str, variant: dict, fitter: Fitter, terms: Sequence[Te
         _, j, after = min(trials, key=lambda item: item[0])
         chosen.remove(j)
     return Term(name, tuple(chosen), variant) if chosen else None
-
-
-def _at_bounds(term: Term, theta: np.ndarray, priors: Priors) -> np.ndarray:
-    """Which of a drive-gain or joint-offset term's joints sit at a bound of ``priors`` (within 1 %)."""
-    lo, hi = term.bounds(priors)
-    span = hi - lo
-    return (theta <= lo + 0.01 * span) | (theta >= hi - 0.01 * span)
-
-
-def _without_saturated(fitter: Fitter, terms: Sequence[Term], term: Term, *fit: np.ndarray) -> tuple:
-    """A drive-gain or joint-offset candidate without the joints whose parameter sits at its prior's bound,
-    refitted (repeatedly, until none does).
-
-    A gain or offset at the bound is another effect seen through τ_m or through gravity (on a light wrist joint
-    τ_m is mostly friction; a heavier link looks like an encoder offset); left in, it would stand for that
-    effect with an implausible value and hide real gains or offsets on the other joints."""
-    while term.name in ("drive_gain", "joint_offset"):
-        pos = sum(t.size for t in terms)
-        saturated = _at_bounds(term, fit[0][pos:pos + term.size], fitter.priors)
-        keep = tuple(j for j, bad in zip(term.joints, saturated) if not bad)
-        if keep == term.joints or not keep:
-            break
-        term = Term(term.name, keep, term.variant)
-        fit = fitter.fit([*terms, term])
-    return term, fit
-
-
-def _saturated_joints(fitter: Fitter, terms: Sequence[Term], theta: np.ndarray) -> tuple[int, tuple[int, ...]] | None:
-    """(term index, joints) of the first drive-gain or joint-offset term of a joint fit θ with joints at a bound of
-    its prior (``_without_saturated``'s rule, for effects that reached the bound only when later ones joined)."""
-    pos = 0
-    for index, term in enumerate(terms):
-        if term.name in ("drive_gain", "joint_offset"):
-            bound = _at_bounds(term, theta[pos:pos + term.size], fitter.priors)
-            if np.any(bound):
-                return index, tuple(j for j, hit in zip(term.joints, bound) if hit)
-        pos += term.size
-    return None
-
-
-def _inconsistent_bodies(fitter: Fitter, term: Term, theta: np.ndarray) -> list[tuple[int, str]]:
-    """(body index, problem) of every body a payload (index 0) or link_inertia θ makes physically impossible."""
-    if term.name == "payload":
-        problem = inertia_problem(fitter.flange + fitter.flange_map @ term.full_theta(theta))
-        return [] if problem is None else [(0, problem)]
-    if term.name == "link_inertia":
-        return [(i, problem) for i, (urdf, change) in enumerate(zip(fitter.links, theta.reshape(-1, 10)))
-                if (problem := inertia_problem(urdf + change)) is not None]
-    return []
-
-
-def _bad_bodies(fitter: Fitter, terms: Sequence[Term], theta: np.ndarray) -> list[tuple[int, int, str]]:
-    """(term index, body index, problem) of every body the payload or link_inertia terms of a joint fit θ make
-    physically impossible."""
-    bad, pos = [], 0
-    for index, term in enumerate(terms):
-        found = _inconsistent_bodies(fitter, term, theta[pos:pos + term.size])
-        bad += [(index, body, problem) for body, problem in found]
-        pos += term.size
-    return bad
-
-
-def _consistent(fitter: Fitter, terms: Sequence[Term], *fit: np.ndarray) -> tuple:
-    """A fit of ``terms`` refitted until every body its payload and link_inertia terms change is physically
-    consistent: the prior of each offending body is tightened toward the URDF (σ set to ``first_prior`` where it
-    was ∞, else halved; at most ``MAX_PRIOR_HALVINGS`` times). Returns the last fit (check it with ``_bad_bodies``).
-
-    The data identify only some combinations of a link's parameters (a base link turning about z shows only
-    its I_zz); the others follow the prior, and a prior loose enough for the identified ones can let them
-    leave the physical set, also when a later effect is fitted jointly with them. Tightening only the
-    offending bodies keeps the identified parameters free elsewhere.
-    """
-    for _ in range(MAX_PRIOR_HALVINGS):
-        bad = _bad_bodies(fitter, terms, fit[0])
-        if not bad:
-            break
-        for index, body, _ in bad:
-            name = terms[index].name
-            scale = fitter.prior_scale[name].copy()
-            block = slice(0, 10) if name == "payload" else slice(10 * body, 10 * body + 10)
-            first = fitter.first_prior[name][block]
-            # halved where finite; where ∞, the first prior (which may itself be ∞: that parameter stays free)
-            scale[block] = np.where(np.isfinite(scale[block]), 0.5 * scale[block], first)
-            fitter.prior_scale[name] = scale
-        fit = fitter.fit(list(terms))
-    return fit
-
-
-def _inadmissible(fitter: Fitter, terms: Sequence[Term], term: Term, theta: np.ndarray,
-                  names: Sequence[str]) -> str | None:
-    """Why a fitted candidate (added to ``terms``) is physically impossible, or None: every payload/tool and
-    link change must leave its body physically consistent; a drive gain or joint offset must not sit at its
-    prior's bound."""
-    pos = sum(t.size for t in terms)
-    mine = theta[pos:pos + term.size]
-    bad = _bad_bodies(fitter, [*terms, term], theta)
-    if bad:
-        index, body, problem = bad[0]
-        name = [*terms, term][index].name
-        return f"{'flange link' if name == 'payload' else f'link of {names[body]}'}: {problem}"
-    if term.name in ("drive_gain", "joint_offset") and np.all(_at_bounds(term, mine, fitter.priors)):
-        return f"{term.name} at the bound of its prior on every joint"
-    return None
 
 
 def _named(joints: Sequence[int] | np.ndarray, names: Sequence[str]) -> str:
@@ -366,16 +262,16 @@ def _greedy(fitter: Fitter, effects: Sequence[str], names: Sequence[str], first_
         for score, term, (th, cv, rt, rh) in (scored if skip else scored[:SCREEN_TOP]):
             if term.name in passed:
                 continue
-            # A candidate's tightened priors (_consistent) are kept only if it is accepted: a rejected one must not
+            # A candidate's tightened priors (consistent) are kept only if it is accepted: a rejected one must not
             # constrain the bodies of the effects already in, nor the next candidates.
             priors_before = dict(fitter.prior_scale)
-            term, (th, cv, rt, rh) = _without_saturated(fitter, terms, term, th, cv, rt, rh)
-            th, cv, rt, rh = _consistent(fitter, [*terms, term], th, cv, rt, rh)
+            term, (th, cv, rt, rh) = without_saturated(fitter, terms, term, th, cv, rt, rh)
+            th, cv, rt, rh = consistent(fitter, [*terms, term], th, cv, rt, rh)
             k = sum(t.size for t in terms) + term.size
             new_bic = fitter.bic(rt, k)
             after = _rmse(rh)
             joints = _affected(before, after)
-            problem = _inadmissible(fitter, terms, term, th, names)
+            problem = inadmissible(fitter, terms, term, th, names)
             if new_bic >= bic or len(joints) == 0 or problem is not None:
                 log(f"[diagnose]   rejected {term.name} on {_named(term.joints, names)}: ΔBIC {new_bic - bic:+.1f}, "
                     f"{'' if problem is None else f'not physically admissible ({problem}), '}"
@@ -458,19 +354,19 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
             best, best_priors = found, dict(fitter.prior_scale)
     terms, theta, cov, _, r_he, _ = best
     fitter.prior_scale = best_priors                  # the priors that selection ended with
-    theta, cov, _, r_he = _consistent(fitter, terms, *fitter.fit(terms))    # the pruned set refitted jointly
-    while (bad := _bad_bodies(fitter, terms, theta)):
+    theta, cov, _, r_he = consistent(fitter, terms, *fitter.fit(terms))    # the pruned set refitted jointly
+    while (bad := bad_bodies(fitter, terms, theta)):
         log(f"[diagnose] dropped {terms[bad[0][0]].name}: still physically inconsistent ({bad[0][2]})")
         terms = [t for i, t in enumerate(terms) if i != bad[0][0]]
-        theta, cov, _, r_he = _consistent(fitter, terms, *fitter.fit(terms))
-    while (saturated := _saturated_joints(fitter, terms, theta)):
+        theta, cov, _, r_he = consistent(fitter, terms, *fitter.fit(terms))
+    while (saturated := saturated_joints(fitter, terms, theta)):
         index, at_bound = saturated
         term = terms[index]
         keep = tuple(j for j in term.joints if j not in at_bound)
         log(f"[diagnose] dropped {term.name} on {_named(at_bound, robot.joint_names)}: at the bound of its prior "
             f"once fitted with the other effects (another effect seen through it)")
         terms = [*terms[:index], *([Term(term.name, keep, term.variant)] if keep else []), *terms[index + 1:]]
-        theta, cov, _, r_he = _consistent(fitter, terms, *fitter.fit(terms))
+        theta, cov, _, r_he = consistent(fitter, terms, *fitter.fit(terms))
     history = _contributions(fitter, terms, r_he)
     gap_after = _rmse(r_he)
     result_effects, thetas = [], []

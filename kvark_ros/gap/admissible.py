@@ -101,7 +101,7 @@ def consistent(fitter: Fitter, terms: Sequence[Term], *fit: np.ndarray) -> tuple
 
 
 def inadmissible(fitter: Fitter, terms: Sequence[Term], term: Term, theta: np.ndarray,
-                  names: Sequence[str]) -> str | None:
+                 names: Sequence[str]) -> str | None:
     """Why a fitted candidate (added to ``terms``) is physically impossible, or None: every payload/tool and
     link change must leave its body physically consistent; a drive gain or joint offset must not sit at its
     prior's bound."""

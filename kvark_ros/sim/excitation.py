@@ -8,9 +8,13 @@ motion start and end at rest at q̄, so a run begins from a still robot.
 The coefficients θ = (a, b) maximise ``log det Cov(S(θ))`` (eq. 25, i.e. minimise J) of the
 state cloud S = {(q, q̇, q̈)_t}, each coordinate normalised by its limit (this only shifts the
 log-det by a constant), minus a penalty on position, velocity and acceleration limit
-violations. The optimiser is ``scipy.optimize.differential_evolution`` (the paper's GA); a final
-uniform scaling of the coefficients (if needed) makes the returned trajectory strictly feasible
-on a 500 Hz grid.
+violations. Every coordinate of S is a combination of the 6K signals w·sin, w·cos, ẇ·sin, ẇ·cos,
+ẅ·sin, ẅ·cos (``cloud_rank``), so a short trajectory (few whole cycles fit: K = 2 for a 1 s run)
+has fewer than 3n of them and a singular Cov, whose determinant is rounding noise that differs
+between numpy/BLAS releases; there the log-det is that of Cov on the directions S spans (the sum of
+the logs of its ``cloud_rank`` largest eigenvalues). The optimiser is
+``scipy.optimize.differential_evolution`` (the paper's GA); a final uniform scaling of the
+coefficients (if needed) makes the returned trajectory strictly feasible on a 500 Hz grid.
 """
 from __future__ import annotations
 
@@ -76,6 +80,12 @@ def harmonic_frequencies(duration: float, harmonics: int) -> FloatArray:
         raise ValueError(f"need duration > 0 s and harmonics >= 1, got {duration}, {harmonics}")
     cycles = np.floor(np.geomspace(F_MIN_HZ, F_MAX_HZ, harmonics) * duration + 0.5)
     return np.unique(np.maximum(cycles, 1.0)) / duration
+
+
+def cloud_rank(n: int, harmonics: int, ramp: float) -> int:
+    """How many directions the (q, q̇, q̈) cloud of an n-joint eq.-24 trajectory with ``harmonics`` frequencies
+    can span: its 3n coordinates combine 6K signals (w, ẇ, ẅ times sin and cos), 2K without a fade window."""
+    return min(3 * n, (6 if ramp > 0.0 else 2) * harmonics)
 
 
 def _smoothstep(x: Any) -> tuple[Any, Any, Any]:
@@ -145,18 +155,24 @@ class FourierTrajectory:
         return self._evaluate(2.0 * np.pi * self.frequencies * t, *_window_at(t, self.duration, self.ramp))
 
 
-def log_det_coverage(q: FloatArray, qd: FloatArray, qdd: FloatArray, limits: ExcitationLimits) -> FloatArray:
+def log_det_coverage(q: FloatArray, qd: FloatArray, qdd: FloatArray, limits: ExcitationLimits,
+                     rank: int) -> FloatArray:
     """``log det Cov`` of the normalised state cloud (−J of eq. 25); inputs (…, T, n), output (…).
 
     Each coordinate is divided by its limit, so values of different trajectories of the same robot
-    compare directly; −inf for a degenerate cloud.
+    compare directly. ``rank`` (``cloud_rank``) below 3n: the cloud spans only that many directions and the
+    value is the log of the product of Cov's ``rank`` largest eigenvalues. −inf for a degenerate cloud.
     """
     cloud = np.concatenate([(q - limits.centre) / limits.half_range, qd / limits.velocity,
                             qdd / limits.acceleration], axis=-1)
     cloud = cloud - cloud.mean(axis=-2, keepdims=True)
     cov = np.swapaxes(cloud, -1, -2) @ cloud / (cloud.shape[-2] - 1)
-    sign, logdet = np.linalg.slogdet(cov)
-    return np.where(sign > 0, logdet, -np.inf)
+    if rank >= cov.shape[-1]:
+        sign, logdet = np.linalg.slogdet(cov)
+        return np.where(sign > 0, logdet, -np.inf)
+    spanned = np.linalg.eigvalsh(cov)[..., -rank:]                  # ascending: the rank largest
+    logdet = np.log(np.maximum(spanned, np.finfo(float).tiny)).sum(axis=-1)
+    return np.where(spanned[..., 0] > 0.0, logdet, -np.inf)
 
 
 @dataclass(frozen=True, eq=False)
@@ -184,6 +200,7 @@ class _Objective:
                  ramp: float, sample_rate: float) -> None:
         self.limits = limits
         self.n, self.k = limits.centre.size, frequencies.size
+        self.rank = cloud_rank(self.n, self.k, ramp)
         t = np.linspace(0.0, duration, min(int(duration * sample_rate), MAX_OBJECTIVE_SAMPLES) + 1)
         omega = 2.0 * np.pi * frequencies
         self.sin, self.cos = np.sin(np.outer(t, omega)), np.cos(np.outer(t, omega))
@@ -203,10 +220,10 @@ class _Objective:
     def scaled_logdet(self, theta: FloatArray) -> FloatArray:
         """log-det (S,) of each candidate after shrinking it uniformly into the limits.
 
-        Shrinking every coefficient by s scales every normalised coordinate by s, so the log-det
-        falls by exactly 2·3n·log(1/s)."""
+        Shrinking every coefficient by s scales every normalised coordinate by s, so the log-det (over
+        ``rank`` directions) falls by exactly 2·rank·log(1/s)."""
         logdet, ratio = self.evaluate(theta)
-        return logdet - 6 * self.n * np.log(np.maximum(ratio.max(axis=-1), 1.0))
+        return logdet - 2 * self.rank * np.log(np.maximum(ratio.max(axis=-1), 1.0))
 
     def evaluate(self, theta: FloatArray) -> tuple[FloatArray, FloatArray]:
         """log-det (S,) and per-joint limit ratios (S, n) for theta (2nK, S)."""
@@ -218,7 +235,7 @@ class _Objective:
         w, wd, wdd = (x[None, :, None] for x in self.window)
         q = self.limits.centre + w * f
         qd, qdd = wd * f + w * fd, wdd * f + 2.0 * wd * fd + w * fdd
-        return log_det_coverage(q, qd, qdd, self.limits), self.limits.violation(q, qd, qdd)
+        return log_det_coverage(q, qd, qdd, self.limits, self.rank), self.limits.violation(q, qd, qdd)
 
     def __call__(self, theta: FloatArray) -> FloatArray:
         """What DE minimises: −score."""
@@ -263,7 +280,7 @@ def optimise_excitation(limits: ExcitationLimits, duration: float, seed: int | n
     if scale < 1.0:
         trajectory = FourierTrajectory(limits.centre.copy(), frequencies, a[0] * scale, b[0] * scale,
                                        duration, ramp)
-    logdet = float(log_det_coverage(*trajectory.sample(grid), limits))
+    logdet = float(log_det_coverage(*trajectory.sample(grid), limits, objective.rank))
     return ExcitationResult(trajectory, logdet, initial_best, scale, result)
 
 

@@ -28,6 +28,8 @@ from typing import Mapping, Sequence
 import numpy as np
 import yaml
 
+from kvark_ros.core.files import SAFE_LOADER
+
 TANH_EPSILON = 0.02   # rad/s, default width of the smoothed sign(q̇) of dry friction
 TORQUE_EFFECTS = ("coulomb_friction", "viscous_friction", "stribeck_friction", "drive_gain", "torque_offset",
                   "position_ripple")
@@ -115,7 +117,7 @@ def _fail(source: str, problem: str) -> AugmentationError:
 def parse_augmentation(text: str, joint_names: Sequence[str], source: str = "augmentation") -> Augmentation:
     """Validate the text of an ``augmentation.yaml`` against the configured joints."""
     try:
-        document = yaml.safe_load(text)
+        document = yaml.load(text, Loader=SAFE_LOADER)
     except yaml.YAMLError as exc:
         raise _fail(source, "invalid YAML") from exc
     if not isinstance(document, Mapping) or not isinstance(document.get("effects"), list):

@@ -20,7 +20,7 @@ import yaml
 
 from kvark_ros import __version__
 from kvark_ros.core.augmentation import Augmentation, AugmentationError, parse_augmentation
-from kvark_ros.core.files import read_yaml
+from kvark_ros.core.files import read_yaml, umask_mode
 from kvark_ros.core.observers.base import DEFAULT_SAMPLE_PERIOD, FilterTuning
 from kvark_ros.core.observers.momentum_observers import MomentumNoise
 from kvark_ros.core.residual import LEARNED_BASELINES, KMPResidualModel, ResidualModelError
@@ -67,6 +67,7 @@ def save_model(directory: str | os.PathLike, model: TrainedModel) -> None:
     target.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
     try:
+        staging.chmod(umask_mode(0o777))          # it becomes the model directory: readable as mkdir makes it
         model.residual.save(staging)
         for baseline in model.baselines.values():
             baseline.save(staging)

@@ -14,6 +14,7 @@ Sign convention (docs/method.md §1.2): ``M q̈ + C q̇ + g + τ_f = τ_m + τ_e
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 import os
@@ -130,8 +131,10 @@ def urdf_sha256(spec: str) -> str:
     return hashlib.sha256(resolve_urdf(spec).encode()).hexdigest()
 
 
+@functools.lru_cache(maxsize=None)
 def _example_robot_data_path(robot: str) -> str:
-    """Path of an example-robot-data URDF inside the installed pip distribution."""
+    """Path of an example-robot-data URDF inside the installed pip distribution (looked up once per process: the
+    listing of the distribution's files costs ~50 ms of interpreter time, which a node's reload should not)."""
     if robot not in EXAMPLE_ROBOT_DATA_URDFS:
         raise RobotModelError(f"{EXAMPLE_ROBOT_DATA_PREFIX}{robot}: unknown robot; "
                               f"known: {', '.join(sorted(EXAMPLE_ROBOT_DATA_URDFS))}")

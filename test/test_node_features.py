@@ -210,7 +210,7 @@ def test_output_qos_is_applied_to_the_estimate_topics(ros, make_node, qos, relia
     for topic in ESTIMATE_TOPICS:
         [publisher] = ros.core.GRAPH.publishers[f"{OUT}/{topic}"]
         profile = publisher.qos_profile
-        assert profile.reliability.name == reliability and profile.depth == 50, topic     # input.queue_depth
+        assert profile.reliability.name == reliability and profile.depth == 100, topic     # input.queue_depth
         assert profile.durability.name == "VOLATILE"
     [diagnostics_publisher] = ros.core.GRAPH.publishers["/diagnostics"]
     assert diagnostics_publisher.qos_profile.reliability.name == "RELIABLE"

@@ -194,7 +194,7 @@ KEYS: tuple[Key, ...] = (
          "offline ground truth: WrenchStamped of a wrist F/T sensor in the bag (replay --ground-truth ft)"),
     _key("input.external_torque_topic", "text", "/ground_truth/external_joint_torque",
          "offline ground truth: JointState effort = true τ_ext in the bag (replay --ground-truth topic)"),
-    _key("input.queue_depth", "integer", 50, "subscription queue depth of the node (sensor-data QoS)", **_unit(1, 1000)),
+    _key("input.queue_depth", "integer", 100, "subscription queue depth of the node (sensor-data QoS)", **_unit(1, 1000)),
     _key("contact.confidence", "number", 0.99, "confidence of the variance-aware χ² contact test", runtime=True,
          **_unit(0.5, 1.0, low_open=True, high_open=True)),
     _key("contact.collision_torque", "number", 8.5,

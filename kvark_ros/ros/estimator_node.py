@@ -37,13 +37,14 @@ nothing is logged per message, nothing non-finite is published (the Estimator ne
 non-finite estimate).
 
 Parameters: the config keys (``kvark_ros.ros.parameters``); relative paths resolve against the
-package's config folder (share/kvark_ros/config, else the source tree's config/), as ``kvark``
-resolves them against the config file's folder; the launch file makes them absolute first.
+package's config folder (``parameters.config_folder``: no ament environment needed).
 
-Threads: ``main`` spins a two-thread executor. Inputs, outputs and ``/diagnostics`` share one
-mutually exclusive callback group, the services another, so ``~/reload_model`` builds the new
-estimator beside the 500 Hz path and swaps it in between two samples (under a lock), continuing the
-old filter's state when joints and observer match: reloading the same model changes no output.
+Threads: ``main`` spins a single-threaded executor: inputs, estimation, publishing, services and
+``/diagnostics`` run one after another on one thread, and nothing needs a lock (rclpy's two-thread
+``MultiThreadedExecutor`` lost 40-96 % of the joint states at 500 Hz on Fast DDS in its own machinery).
+``~/reload_model`` and a new ``robot_description`` build the estimator on a worker thread while the
+executor keeps taking samples; their coroutine then swaps it in between two samples, continuing the old
+filter's state when joints and observer match (reloading the same model changes no output), and replies.
 Lost input is measured: gaps in the joint-state stamps against the measured rate are counted and
 shown on ``/diagnostics`` (WARN above ``diagnostics.max_loss``). The uncertainty topics are published
 only while someone subscribes (checked at every ``/diagnostics`` tick and every 100 estimates).
@@ -53,6 +54,7 @@ from __future__ import annotations
 import math
 import sys
 import threading
+from collections.abc import Awaitable
 from collections import Counter
 from typing import Any
 
@@ -61,15 +63,16 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile
+from rclpy.task import Future
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
-from kvark_ros.core.config import NODE_NAME, ROBOT_DESCRIPTION, ConfigError
+from kvark_ros.core.config import NODE_NAME, ROBOT_DESCRIPTION, ConfigError, EstimatorConfig
 from kvark_ros.core.estimator import Estimate, Estimator
 from kvark_ros.core.pairing import RESET, JointColumns, Reject, Sample, StreamPairer, stamp_seconds
 from kvark_ros.core.tare import TareError
@@ -78,6 +81,7 @@ from kvark_ros.ros.diagnostics import NOT_READY, SERVICE_RESET, StatusBuilder, W
 from kvark_ros.ros.publishers import SUBSCRIBER_CHECK, EstimatePublishers, qos_profile
 
 URDF_FROM_TOPIC = ROBOT_DESCRIPTION
+SWITCH_INTERVAL = 0.0002   # s a build thread may hold the interpreter before the inputs get it (Python's: 0.005)
 __all__ = ["EstimatorNode", "main", "Drop", "SUBSCRIBER_CHECK", "ConfigError"]
 _BUILD_ERRORS = (ValueError, OSError, RuntimeError, KeyError, TypeError, np.linalg.LinAlgError)
 
@@ -102,7 +106,6 @@ class EstimatorNode(Node):
         self._counts: Counter[str] = Counter()      # the node's and the pairing's reasons
         self._pairer = StreamPairer(config.input.command_max_age, config.input.max_gap, counts=self._counts)
         self._stamped_commands = self._torque_source == "effort_commands_joint_state"
-        self._lock = threading.Lock()                # the input path and the swap of a reloaded estimator
         self._estimator: Estimator | None = None
         self._urdf_xml: str | None = None            # newest robot_description received
         self._urdf_in_use = ""
@@ -123,25 +126,22 @@ class EstimatorNode(Node):
         self._outputs = EstimatePublishers(self, config.joint_names,
                                            qos_profile(config.output.qos, config.input.queue_depth))
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
-        self._inputs = MutuallyExclusiveCallbackGroup()
-        services = MutuallyExclusiveCallbackGroup()
         inputs = config.input
-        self.create_subscription(JointState, inputs.joint_states_topic, self._on_joint_state, sensor_qos,
-                                 callback_group=self._inputs)
+        self.create_subscription(JointState, inputs.joint_states_topic, self._joint_state, sensor_qos)
         if self._torque_source == "effort_commands":
-            self.create_subscription(Float64MultiArray, inputs.effort_commands_topic, self._on_command_array,
-                                     sensor_qos, callback_group=self._inputs)
+            self.create_subscription(Float64MultiArray, inputs.effort_commands_topic, self._command_array, sensor_qos)
         elif self._stamped_commands:
-            self.create_subscription(JointState, inputs.effort_commands_topic, self._on_command_state, sensor_qos,
-                                     callback_group=self._inputs)
+            self.create_subscription(JointState, inputs.effort_commands_topic, self._command_state, sensor_qos)
+        # The model builds (coroutines awaiting a worker thread) in a group of their own: a callback group is busy
+        # until its coroutine returns, so in the node's default group a build would hold up every input.
+        builds = MutuallyExclusiveCallbackGroup()
         self.create_subscription(String, "robot_description", self._on_robot_description,
                                  QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL),
-                                 callback_group=services)
-        self.create_service(Trigger, "~/reset", self._on_reset, callback_group=services)
-        self.create_service(Trigger, "~/reload_model", self._on_reload_model, callback_group=services)
-        self.create_service(Trigger, "~/tare", self._on_tare, callback_group=services)
-        self._timer = self.create_timer(config.diagnostics.period, self._publish_diagnostics,
-                                        callback_group=self._inputs)
+                                 callback_group=builds)
+        self.create_service(Trigger, "~/reset", self._on_reset)
+        self.create_service(Trigger, "~/reload_model", self._on_reload_model, callback_group=builds)
+        self.create_service(Trigger, "~/tare", self._on_tare)
+        self._timer = self.create_timer(config.diagnostics.period, self._publish_diagnostics)
         self.add_on_set_parameters_callback(lambda changed: parameters.check_update(self, changed))
         self.add_post_set_parameters_callback(self._apply_parameters)
 
@@ -149,7 +149,7 @@ class EstimatorNode(Node):
             self._model_problem = "waiting for the URDF on robot_description"
             self.get_logger().info("waiting for robot_description to build the estimator")
         else:
-            problem = self._load(None)
+            problem = self._swap_in(self._build(self._config, None), None)
             if problem is not None:
                 self._model_problem = problem
                 self.get_logger().error(f"no estimator: {problem} (fix it, then call ~/reload_model)")
@@ -167,41 +167,54 @@ class EstimatorNode(Node):
         if not names:
             return
         config = parameters.read_config(self)       # read-only keys cannot differ: the on-set callback refused them
-        with self._lock:
-            previous, self._config = self._config, config
-            if self._estimator is not None:
-                self._estimator.configure(config)
-            self._pairer.command_max_age, self._pairer.max_gap = config.input.command_max_age, config.input.max_gap
+        previous, self._config = self._config, config
+        if self._estimator is not None:
+            self._estimator.configure(config)
+        self._pairer.command_max_age, self._pairer.max_gap = config.input.command_max_age, config.input.max_gap
         if config.diagnostics.period != previous.diagnostics.period:
             self.destroy_timer(self._timer)
-            self._timer = self.create_timer(config.diagnostics.period, self._publish_diagnostics,
-                                            callback_group=self._inputs)
+            self._timer = self.create_timer(config.diagnostics.period, self._publish_diagnostics)
         self.get_logger().info("parameters changed: " + ", ".join(
             f"{n}={self.get_parameter(n).value}" for n in names))
 
     # ------------------------------------------------------------------ the estimator
 
-    def _load(self, urdf_xml: str | None) -> str | None:
-        """Build a new estimator (outside the lock: the inputs keep flowing) and swap it in between two
-        samples, continuing the old one's filter state where joints and observer match; the problem as
-        text if the build failed (the old one stays)."""
+    @staticmethod
+    def _build(config: EstimatorConfig, urdf_xml: str | None) -> Estimator | str:
+        """A new estimator of ``config`` (``urdf_xml``: the robot_description's URDF), or the problem as text."""
         try:
-            estimator = Estimator.from_config(self._config, urdf=urdf_xml)
+            return Estimator.from_config(config, urdf=urdf_xml)
         except _BUILD_ERRORS as exc:
-            return (str(exc) or type(exc).__name__)
-        with self._lock:
-            old = self._estimator
-            if old is not None:
-                self._archived.update(old.counts)
-                try:
-                    estimator.continue_from(old)
-                except ValueError:
-                    self._pairer.reset()              # another observer or other joints: start over
-            self._estimator = estimator
-            self._urdf_in_use = "robot_description topic" if urdf_xml is not None else self._config.urdf
-            self._base_frame = estimator.robot.root_link
-            self._model_problem = ""
-            self._reload_problem = None
+            return str(exc) or type(exc).__name__
+
+    def _build_off_path(self, urdf_xml: str | None) -> Awaitable[Estimator | str]:
+        """``_build`` on a worker thread, so the executor keeps taking samples meanwhile; await the result."""
+        done = Future(executor=self.executor)
+        done.add_done_callback(lambda _future: None)    # with a done callback, set_result wakes the executor
+        config = self._config
+        threading.Thread(target=lambda: done.set_result(self._build(config, urdf_xml)), name="kvark_model_build",
+                         daemon=True).start()
+        return done
+
+    def _swap_in(self, built: Estimator | str, urdf_xml: str | None) -> str | None:
+        """Put a built estimator in use between two samples, continuing the old one's filter state where joints
+        and observer match; ``built`` a problem: return it (the old estimator stays)."""
+        if isinstance(built, str):
+            return built
+        old = self._estimator
+        if old is not None:
+            self._archived.update(old.counts)
+            try:
+                built.continue_from(old)
+            except ValueError:
+                self._pairer.reset()              # another observer or other joints: start over
+        if built.config != self._config:
+            built.configure(self._config)         # run-time parameters set while it was being built
+        self._estimator = built
+        self._urdf_in_use = "robot_description topic" if urdf_xml is not None else self._config.urdf
+        self._base_frame = built.robot.root_link
+        self._model_problem = ""
+        self._reload_problem = None
         return None
 
     def _urdf_for_reload(self) -> str | None:
@@ -221,10 +234,6 @@ class EstimatorNode(Node):
         published = next((info[k] for k in ("source_timestamp", "received_timestamp") if info.get(k) is not None),
                          None)
         return (self.get_clock().now().nanoseconds if published is None else published) / 1e9
-
-    def _on_joint_state(self, msg: JointState, info: dict) -> None:
-        with self._lock:
-            self._joint_state(msg, info)
 
     def _joint_state(self, msg: JointState, info: dict) -> None:
         index = self._columns.index(msg.name)
@@ -259,10 +268,6 @@ class EstimatorNode(Node):
             key = self._order_key(info, stamp)
             self._estimate_all(self._pairer.state(key, Sample(stamp, q, qd, None, stamp_msg)))
 
-    def _on_command_array(self, msg: Float64MultiArray, info: dict) -> None:
-        with self._lock:
-            self._command_array(msg, info)
-
     def _command_array(self, msg: Float64MultiArray, info: dict) -> None:
         data, dims = msg.data, msg.layout.dim
         index = None
@@ -282,16 +287,15 @@ class EstimatorNode(Node):
             return
         self._estimate_all(self._pairer.command(self._order_key(info, None), tau_m))
 
-    def _on_command_state(self, msg: JointState, info: dict) -> None:
-        with self._lock:
-            index = self._columns.index(msg.name)
-            if not isinstance(index, np.ndarray) or len(msg.effort) != len(msg.name):
-                self._counts[Drop.BAD_COMMAND] += 1
-                return
-            key = self._order_key(info, stamp_seconds(msg.header.stamp.sec, msg.header.stamp.nanosec))
-            self._estimate_all(self._pairer.command(key, np.asarray(msg.effort, dtype=np.float64)[index]))
+    def _command_state(self, msg: JointState, info: dict) -> None:
+        index = self._columns.index(msg.name)
+        if not isinstance(index, np.ndarray) or len(msg.effort) != len(msg.name):
+            self._counts[Drop.BAD_COMMAND] += 1
+            return
+        key = self._order_key(info, stamp_seconds(msg.header.stamp.sec, msg.header.stamp.nanosec))
+        self._estimate_all(self._pairer.command(key, np.asarray(msg.effort, dtype=np.float64)[index]))
 
-    def _on_robot_description(self, msg: String) -> None:
+    async def _on_robot_description(self, msg: String) -> None:
         xml = msg.data
         if not xml.strip() or xml == self._urdf_xml:
             return
@@ -302,7 +306,7 @@ class EstimatorNode(Node):
                 self.get_logger().info(f"robot_description received; keeping robot_model.urdf {self._config.urdf} "
                                        f"(set robot_model.urdf: {URDF_FROM_TOPIC} to build from the topic)")
             return
-        problem = self._load(xml)
+        problem = self._swap_in(await self._build_off_path(xml), xml)
         if problem is None:
             self.get_logger().info("estimator built from robot_description")
         else:
@@ -322,10 +326,6 @@ class EstimatorNode(Node):
                     self._outputs.publish(estimate, sample.tag, self._base_frame, self._config.ee_frame)
                     self._last = estimate
 
-    @property
-    def _published(self) -> int:
-        return self._outputs.published
-
     # ------------------------------------------------------------------ services
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
@@ -333,11 +333,10 @@ class EstimatorNode(Node):
             response.success = False
             response.message = f"no estimator to reset: {self._model_problem}"
             return response
-        with self._lock:
-            self._estimator.reset()
-            self._estimator.clear_tare()
-            self._pairer.reset()
-            self._counts[Drop.SERVICE_RESET] += 1
+        self._estimator.reset()
+        self._estimator.clear_tare()
+        self._pairer.reset()
+        self._counts[Drop.SERVICE_RESET] += 1
         response.success = True
         response.message = "filter reset and tare cleared; the next joint state starts a new estimate"
         return response
@@ -348,24 +347,25 @@ class EstimatorNode(Node):
         if self._estimator is None:
             response.message = f"no estimator to tare: {self._model_problem}"
             return response
-        with self._lock:
-            try:
-                self._estimator.start_tare()
-            except TareError as exc:
-                response.message = f"tare refused: {exc}"
-            else:
-                response.success = True
-                response.message = (f"averaging τ_ext for {self._config.tare.duration:g} s at rest, then subtracting "
-                                    f"it; progress and offset on /diagnostics ({self.get_fully_qualified_name()}: "
-                                    "tare)")
+        try:
+            self._estimator.start_tare()
+        except TareError as exc:
+            response.message = f"tare refused: {exc}"
+        else:
+            response.success = True
+            response.message = (f"averaging τ_ext for {self._config.tare.duration:g} s at rest, then subtracting it; "
+                                f"progress and offset on /diagnostics ({self.get_fully_qualified_name()}: tare)")
         self.get_logger().info(response.message)
         return response
 
-    def _on_reload_model(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+    async def _on_reload_model(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        """Build the model off the input path, swap it in between two samples, then reply (module docstring)."""
         try:
-            problem = self._load(self._urdf_for_reload())
+            urdf_xml = self._urdf_for_reload()
         except ValueError as exc:
-            problem = (str(exc) or type(exc).__name__)
+            problem: str | None = str(exc)
+        else:
+            problem = self._swap_in(await self._build_off_path(urdf_xml), urdf_xml)
         if problem is None:
             response.success = True
             response.message = f"model reloaded from {self._config.model_dir} (observer {self._config.observer})"
@@ -400,9 +400,9 @@ class EstimatorNode(Node):
                  if total > self._diag_counts.get(key, 0)}
         lost, period = self._pairer.lost, self._pairer.period
         window = Window(seconds - self._diag_time, self._received - self._diag_received,
-                        self._published - self._diag_published, counts, fresh, lost - self._diag_lost,
+                        self._outputs.published - self._diag_published, counts, fresh, lost - self._diag_lost,
                         self._config.diagnostics.max_loss)
-        self._diag_time, self._diag_received, self._diag_published = seconds, self._received, self._published
+        self._diag_time, self._diag_received, self._diag_published = seconds, self._received, self._outputs.published
         self._diag_lost = lost
         self._diag_counts = counts
         reporting = estimator is None or estimator.observer.reports_covariance
@@ -412,7 +412,7 @@ class EstimatorNode(Node):
             self._statuses.model(self._config, self._urdf_in_use, estimator, self._model_problem,
                                  self._reload_problem, math.nan if period is None else 1.0 / period),
             self._statuses.input(window, {"joint_states_received": self._received, "joint_states_lost": lost,
-                                          "estimates_published": self._published}, self._missing_detail),
+                                          "estimates_published": self._outputs.published}, self._missing_detail),
             self._statuses.filter(window, estimator, None if self._last is None else self._last.tau_cov,
                                   "no estimate yet" if reporting else "observer reports no covariance"),
             self._statuses.wrench(self._last, estimator),
@@ -429,7 +429,8 @@ def main(args: list[str] | None = None) -> int:
         print(f"[{NODE_NAME}] error: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 1
-    executor = MultiThreadedExecutor(num_threads=2)      # inputs and services (a reload) side by side
+    sys.setswitchinterval(SWITCH_INTERVAL)
+    executor = SingleThreadedExecutor()          # one path for inputs, estimates and services (module docstring)
     executor.add_node(node)
     try:
         executor.spin()

@@ -10,6 +10,7 @@ node, plus, for a payload changed at run time, that it is a physical rigid body
 from __future__ import annotations
 
 import array
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -37,17 +38,18 @@ def _plain(value: Any) -> Any:
 
 def config_folder() -> Path | None:
     """The folder relative config paths resolve against, as ``kvark`` resolves them against the config file's
-    folder: the installed share/kvark_ros/config, else the source tree's config/ (None: the working directory)."""
+    folder: share/kvark_ros/config of the ament index (a colcon install, ``ros2 run``), else the source tree's
+    config/ (a checkout, an editable install), else ``<prefix>/share/kvark_ros/config`` (a pip install: setup.py's
+    data_files); None: the working directory. Without an ament environment (no ``AMENT_PREFIX_PATH``, as after
+    ``pip install``) the index is skipped, not an error."""
+    candidates = []
     try:
-        from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
-        try:
-            return Path(get_package_share_directory("kvark_ros")) / "config"
-        except PackageNotFoundError:
-            pass
-    except ImportError:
+        from ament_index_python.packages import get_package_share_directory
+        candidates.append(Path(get_package_share_directory("kvark_ros")) / "config")
+    except (ImportError, LookupError, OSError, ValueError):   # no index, no AMENT_PREFIX_PATH, or not in it
         pass
-    source = Path(__file__).resolve().parents[2] / "config"
-    return source if source.is_dir() else None
+    candidates += [Path(__file__).resolve().parents[2] / "config", Path(sys.prefix) / "share" / "kvark_ros" / "config"]
+    return next((folder for folder in candidates if folder.is_dir()), None)
 
 
 def descriptor(key: Key) -> ParameterDescriptor:

@@ -1,15 +1,17 @@
 """Machinery of the rclpy stand-in owned by the kvark_ros test suite. This is NOT ROS.
 
-rclpy cannot be installed where the suite runs (no ROS package source is reachable), so
-``test/ros_stand_in`` fakes the small part of the rclpy API that ``kvark_ros/ros`` uses, closely
-enough to drive the node's callbacks in-process:
+Real rclpy is in the lock and tests the node as a process (test_ros_node.py). This stand-in fakes
+the small part of the rclpy API that ``kvark_ros/ros`` uses, closely enough to drive the node's
+callbacks in-process, for what real DDS cannot produce on demand: a chosen delivery order and a clock
+the test moves:
 
 - messages are plain Python objects whose fields are type-checked on assignment the way the
   rosidl-generated Python classes check them (``float64[]`` fields take ``array.array('d')`` or
   a sequence of floats, never a numpy array; ``bool`` fields take only ``bool``; ``byte``
   fields take a one-byte ``bytes``);
 - one in-process graph: ``publish`` calls every subscription of the resolved topic name
-  synchronously, in the caller's thread (no executor, no QoS, no serialisation);
+  synchronously, in the caller's thread (no executor, no QoS, no serialisation); an ``async def``
+  callback is run to completion before the call returns;
 - one simulated clock shared by every node (like ``use_sim_time``), moved by the test with
   :func:`set_time`, which also fires the timers that fall due;
 - parameters follow rclpy's rules (declare/override/descriptor/read-only/range/callbacks).
@@ -21,6 +23,8 @@ from __future__ import annotations
 
 import array
 import copy
+import inspect
+import time
 from collections import UserList
 from collections.abc import Sequence, Set
 from typing import Any, Callable
@@ -239,9 +243,9 @@ class Graph:
                 raise TypeError(f"stand-in: {topic} carries {subscription.msg_type.__name__}, "
                                 f"got {type(message).__name__}")
             if subscription.with_message_info:
-                subscription.callback(message, dict(info))
+                run_to_completion(subscription.callback(message, dict(info)))
             else:
-                subscription.callback(message)
+                run_to_completion(subscription.callback(message))
 
     def published(self, topic: str) -> list[Any]:
         """Every message published on ``topic`` (resolved name) so far, in order."""
@@ -250,8 +254,26 @@ class Graph:
     def call(self, name: str, request: Any = None) -> Any:
         """Call a service by resolved name and return its response."""
         service = self.services[name]
-        return service.callback(request if request is not None else service.srv_type.Request(),
-                                service.srv_type.Response())
+        return run_to_completion(service.callback(request if request is not None else service.srv_type.Request(),
+                                                  service.srv_type.Response()))
+
+
+def run_to_completion(result: Any, timeout: float = 60.0) -> Any:
+    """A callback's return value; a coroutine (an ``async def`` callback) is resumed until it finishes, as
+    rclpy's executor resumes its task, the caller's thread waiting for what it awaits (a worker thread's
+    ``rclpy.task.Future``)."""
+    if not inspect.iscoroutine(result):
+        return result
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            result.send(None)
+        except StopIteration as finished:
+            return finished.value
+        if time.monotonic() > deadline:
+            result.close()
+            raise TimeoutError(f"stand-in: a coroutine callback did not finish within {timeout} s")
+        time.sleep(0.001)
 
 
 GRAPH = Graph()

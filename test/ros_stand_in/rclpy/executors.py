@@ -5,11 +5,10 @@ class ExternalShutdownException(Exception):
     """Context has been shutdown."""
 
 
-class MultiThreadedExecutor:
-    """Stand-in: ``spin`` runs the test's spin hook once, like ``rclpy.spin`` here (no threads)."""
+class SingleThreadedExecutor:
+    """Stand-in: ``spin`` runs the test's spin hook once, like ``rclpy.spin`` here."""
 
-    def __init__(self, num_threads: int | None = None, *, context: object = None) -> None:
-        self.num_threads = num_threads
+    def __init__(self, *, context: object = None) -> None:
         self.nodes: list = []
 
     def add_node(self, node: object) -> bool:

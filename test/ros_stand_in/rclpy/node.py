@@ -122,6 +122,11 @@ class Node:
         self.destroyed = False
         self.declare_parameter("use_sim_time", False)
 
+    @property
+    def executor(self) -> Any:
+        """The executor the node was added to: none in the stand-in."""
+        return None
+
     # -- names, clock, logger
 
     def get_name(self) -> str:

@@ -38,7 +38,12 @@ COMMANDS = (
     Command("config", "kvark_ros.tools.config", "print a config's validated settings, or every key (--keys)"),
     Command("init", "kvark_ros.tools.init", "write a commented config for a new robot from its URDF or xacro"),
     Command("import", "kvark_ros.tools.importer", "convert a robot log (CSV/text, NPZ, MAT) into a ROS 2 bag"),
+    Command("play", "kvark_ros.ros.player", "publish a bag's joint states and effort commands to ROS 2 (rclpy)"),
+    Command("node-check", "kvark_ros.ros.node_check",
+            "run the ROS 2 node on a bag over loopback DDS and compare it with replay (rclpy)"),
 )
+ROS_HINT = ("source a ROS 2 Jazzy environment, or install the ROS 2 wheels: pip install -e '.[ros]' "
+            "(linux x86_64; `make demo` and `make test` put them in .venv)")
 
 # The errors a user causes (a bad file, config, model, bag or plant), printed as one line: (defining module, class).
 # A class whose module is not loaded cannot have been raised, so checking for them imports nothing.
@@ -62,7 +67,13 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(title="commands", metavar="COMMAND")
     for entry in available_commands():
         if entry.name == command:
-            importlib.import_module(entry.module).add_parser(subparsers)
+            try:
+                module = importlib.import_module(entry.module)
+            except ModuleNotFoundError as exc:
+                if not entry.module.startswith("kvark_ros.ros."):
+                    raise
+                parser.exit(1, f"kvark {entry.name}: needs ROS 2 rclpy ({exc.name} is missing): {ROS_HINT}\n")
+            module.add_parser(subparsers)
         else:           # listed in `kvark --help`; never parsed
             subparsers.add_parser(entry.name, help=entry.help)
     return parser

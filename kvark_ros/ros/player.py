@@ -1,0 +1,172 @@
+"""``kvark play BAG``: publish a bag's joint states and effort commands to ROS 2, at real time or a set rate.
+
+For users without rosbag2 (the ROS 2 wheels have none) and for the node's tests: the config's
+``input.joint_states_topic`` and ``input.effort_commands_topic`` are read from the bag (as ``kvark replay``
+reads them) and published under the same relative names, so ``--ros-args -r joint_states:=/arm/joint_states``
+remaps them as it would the node's. Each message goes out as the bag stores it (its serialized CDR bytes:
+stamps and values bit for bit), in log order, at log time / ``--rate`` after the start, with the sensor-data
+QoS the node subscribes with. Before the first message the player waits until every topic has a subscriber
+(``--wait``), so a node that is still starting loses nothing.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import rclpy
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from kvark_ros.core.config import load_config
+from kvark_ros.io import BagError, TopicNames
+
+NODE_NAME = "kvark_player"
+MESSAGE_TYPES = {"sensor_msgs/msg/JointState": JointState, "std_msgs/msg/Float64MultiArray": Float64MultiArray}
+__all__ = ["BagPlayer", "Recording", "read_recording", "main"]
+
+
+@dataclass(frozen=True)
+class Recording:
+    """The messages to play: (log time ns, topic index, CDR bytes) in log order; ``topics[i]`` is (config topic
+    name, message class)."""
+
+    topics: tuple[tuple[str, type], ...]
+    messages: list[tuple[int, int, bytes]]
+
+    @property
+    def duration(self) -> float:
+        """Log time from the first message to the last, s."""
+        return (self.messages[-1][0] - self.messages[0][0]) / 1e9 if self.messages else 0.0
+
+
+def read_recording(bag: str | Path, joint_states_topic: str, effort_commands_topic: str) -> Recording:
+    """The two input topics of ``bag`` (relative config names; the bag records them absolute); ``BagError``
+    naming the config key when one is missing or of a type the node does not take."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.rosbag2.errors import ReaderError
+
+    wanted = TopicNames(joint_states=f"/{joint_states_topic.lstrip('/')}",
+                        effort_commands=f"/{effort_commands_topic.lstrip('/')}")
+    keys = {wanted.joint_states: (0, "input.joint_states_topic", joint_states_topic),
+            wanted.effort_commands: (1, "input.effort_commands_topic", effort_commands_topic)}
+    try:
+        with Reader(bag) as reader:
+            found = {c.topic: c for c in reader.connections if c.topic in keys}
+            for topic, (_, key, _name) in keys.items():
+                if topic not in found:
+                    raise BagError(f"{bag}: no topic {topic} in the bag (the config's {key}); its topics: "
+                                   f"{', '.join(sorted({c.topic for c in reader.connections}))}")
+                if found[topic].msgtype not in MESSAGE_TYPES:
+                    raise BagError(f"{bag}: {topic} carries {found[topic].msgtype}; the player publishes "
+                                   f"{' or '.join(MESSAGE_TYPES)}")
+            order = {id(connection): keys[topic][0] for topic, connection in found.items()}
+            messages = [(log_ns, order[id(connection)], bytes(raw))
+                        for connection, log_ns, raw in reader.messages(connections=list(found.values()))]
+    except (ReaderError, FileNotFoundError) as exc:
+        raise BagError(f"{bag}: cannot read the bag ({exc}); pass a rosbag2 folder or its .mcap/.db3 file") from exc
+    topics = tuple((name, MESSAGE_TYPES[found[topic].msgtype]) for topic, (_, _, name) in
+                   sorted(keys.items(), key=lambda item: item[1][0]))
+    return Recording(topics, messages)
+
+
+class BagPlayer(Node):
+    """Publishes a ``Recording`` on its topics (relative names: remappable) with the sensor-data QoS."""
+
+    def __init__(self, recording: Recording, **kwargs) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        self.recording = recording
+        self.topic_publishers = [self.create_publisher(kind, name, qos_profile_sensor_data)
+                            for name, kind in recording.topics]
+
+    def wait_for_subscribers(self, timeout: float) -> bool:
+        """Until every topic has a subscriber (discovery takes a moment) or ``timeout`` s; whether they all have."""
+        deadline = time.monotonic() + timeout
+        while any(p.get_subscription_count() == 0 for p in self.topic_publishers):
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.01)
+        return True
+
+    def play(self, rate: float = 1.0, at: Callable[[float], None] | None = None) -> float:
+        """Publish every message at its log time / ``rate`` after the start; ``at(t)`` (if given) is called
+        before each message with its bag time t (s since the first message). The lateness (s) of the most
+        delayed message, so a caller can tell how closely the schedule was held."""
+        if not self.recording.messages:
+            return 0.0
+        first = self.recording.messages[0][0]
+        start = time.perf_counter()
+        late = 0.0
+        for log_ns, topic, raw in self.recording.messages:
+            bag_time = (log_ns - first) / 1e9
+            due = start + bag_time / rate
+            wait = due - time.perf_counter()
+            if wait > 0.0:
+                time.sleep(wait)
+            else:
+                late = max(late, -wait)
+            if at is not None:
+                at(bag_time)
+            self.topic_publishers[topic].publish(raw)
+        return late
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "play", help="publish a bag's joint states and effort commands to ROS 2 (rclpy)",
+        description="Publish the joint states and effort commands of a ROS 2 bag (MCAP or sqlite3) on the config's "
+                    "input topics, at real time or --rate times faster, bit for bit as recorded. Needs ROS 2 rclpy "
+                    "(a ROS 2 Jazzy environment, or the ros-jazzy-* wheels of the [ros] extra). ROS arguments "
+                    "follow --ros-args, e.g. --ros-args -r joint_states:=/arm/joint_states.")
+    parser.add_argument("bag", help="bag to play")
+    parser.add_argument("--config", default=str(Path(__file__).resolve().parents[2] / "config" / "panda.yaml"),
+                        help="estimator config whose input.joint_states_topic and input.effort_commands_topic are "
+                             "played (default: config/panda.yaml)")
+    parser.add_argument("--rate", type=float, default=1.0, help="playback speed, 1 = real time (default), 2 = twice "
+                                                                "as fast")
+    parser.add_argument("--wait", type=float, default=10.0, metavar="SECONDS",
+                        help="wait up to SECONDS for a subscriber on every topic before playing (default 10; "
+                             "0: play at once)")
+    parser.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[], dest="ros_args",
+                        help="ROS arguments (remappings, parameters), as for any ROS 2 node")
+    parser.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if not args.rate > 0.0:
+        raise BagError(f"--rate must be > 0, got {args.rate}")
+    config = load_config(args.config)
+    recording = read_recording(args.bag, config.input.joint_states_topic, config.input.effort_commands_topic)
+    rclpy.init(args=["kvark_play", "--ros-args", *args.ros_args] if args.ros_args else None)
+    try:
+        player = BagPlayer(recording)
+        names = ", ".join(p.topic_name for p in player.topic_publishers)
+        if args.wait > 0.0 and not player.wait_for_subscribers(args.wait):
+            print(f"[play] no subscriber on every topic after {args.wait:g} s; playing anyway", file=sys.stderr)
+        print(f"[play] {len(recording.messages)} messages, {recording.duration:.2f} s of {args.bag} at "
+              f"{args.rate:g}x on {names}", flush=True)
+        late = player.play(args.rate)
+        print(f"[play] done; the most delayed message was {late * 1e3:.2f} ms late", flush=True)
+        player.destroy_node()
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        rclpy.try_shutdown()
+    return 0
+
+
+def main() -> int:
+    """``python -m kvark_ros.ros.player BAG ...``: the same as ``kvark play``."""
+    parser = argparse.ArgumentParser(prog="kvark_player")
+    add_parser(parser.add_subparsers())
+    args = parser.parse_args(["play", *sys.argv[1:]])
+    return args.run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

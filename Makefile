@@ -14,7 +14,7 @@ export OMP_NUM_THREADS := 1
 export OPENBLAS_NUM_THREADS := 1
 export MKL_NUM_THREADS := 1
 
-.PHONY: demo test test-newest lock versions bench bags model benchmark reliability clean
+.PHONY: demo test test-newest smoke-newest newest-venv lock versions bench bags model benchmark reliability clean
 
 KVARK   := $(BIN)/kvark
 CONFIG  := config/panda.yaml
@@ -31,8 +31,9 @@ $(STAMP): setup.py setup.cfg $(LOCK)
 	$(BIN)/python -m pip check
 	touch $(STAMP)
 
-## demo: the main job on a laptop (no robot, no ROS): committed bags -> diagnose the model gap ->
-## train on the augmented model -> replay every observer
+## demo: the main job on a laptop (no robot, no ROS install): committed bags -> diagnose the model gap ->
+## train on the augmented model -> replay every observer -> run the ROS 2 node (the lock's rclpy wheels)
+## on a bag over loopback DDS, a reload mid-run, and print how it matches replay
 TRAIN_BAGS := bags/panda_excitation_1 bags/panda_excitation_2
 demo: $(STAMP)
 	$(KVARK) diagnose --config $(CONFIG) --bags $(TRAIN_BAGS) --out $(RESULTS)/diagnosis
@@ -43,6 +44,7 @@ demo: $(STAMP)
 	    --observers all --plant $(PLANT) --out $(RESULTS)/$$scene || exit 1; \
 	done
 	@echo "demo results: $(RESULTS)/diagnosis/report.md (model gap), $(RESULTS)/<scenario>/report.md, metrics.json, plots; model in $(RESULTS)/model"
+	$(KVARK) node-check --config $(CONFIG) --model $(RESULTS)/model --bag bags/panda_contact --reload-at 2.5
 
 ## bags: regenerate the committed sample bags (simulated Panda)
 bags: $(STAMP)
@@ -80,18 +82,31 @@ versions: $(STAMP)
 lock:
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet uv==$(UV_VERSION)
-	$(BIN)/uv pip compile setup.cfg --extra sim --extra test --universal --python-version 3.10 \
+	$(BIN)/uv pip compile setup.cfg --extra sim --extra test --extra ros --universal --python-version 3.10 \
 	  --fork-strategy fewest --upgrade --quiet -o $(LOCK)
 	rm -f $(STAMP)
 	$(MAKE) test
 
 ## test-newest: the suite on the newest releases the package's ranges allow (no lock), in .venv-newest
-test-newest:
-	test -x .venv-newest/bin/python || $(PYTHON) -m venv .venv-newest
-	.venv-newest/bin/python -m pip install --quiet --upgrade pip
-	.venv-newest/bin/python -m pip install --quiet --upgrade --upgrade-strategy eager -e '.[sim,test]'
-	@.venv-newest/bin/python test/versions.py
-	.venv-newest/bin/python -m pytest -q
+NEWEST := .venv-newest/bin
+SMOKE  ?= /tmp/kvark-smoke-newest
+newest-venv:
+	test -x $(NEWEST)/python || $(PYTHON) -m venv .venv-newest
+	$(NEWEST)/python -m pip install --quiet --upgrade pip
+	$(NEWEST)/python -m pip install --quiet --upgrade --upgrade-strategy eager -e '.[sim,test,ros]'
+	@$(NEWEST)/python test/versions.py
+
+test-newest: newest-venv
+	$(NEWEST)/python -m pytest -q
+
+## smoke-newest: what CI runs on the newest releases within its budget: train and replay on the committed
+## bags, the training and model-loading tests, and the real ROS 2 node on a bag (with a reload)
+smoke-newest: newest-venv
+	rm -rf $(SMOKE)
+	$(NEWEST)/kvark train --config $(CONFIG) --bags $(TRAIN_BAGS) --out $(SMOKE)/model
+	$(NEWEST)/kvark replay --config $(CONFIG) --model $(SMOKE)/model --bag bags/panda_contact --no-bag \
+	  --out $(SMOKE)/contact
+	$(NEWEST)/python -m pytest -q test/test_ros_node.py test/test_offline.py test/test_residual_model.py
 
 ## bench: per-step latency of every observer
 bench: $(STAMP)

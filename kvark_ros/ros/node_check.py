@@ -252,12 +252,14 @@ def summary(figures: dict) -> str:
     reload = "" if figures["reload_at"] is None else f", ~/reload_model at {figures['reload_at']:g} s: " + (
         "; ".join(f"{'ok' if ok else 'FAILED'} ({message})" for ok, message in figures["reload_replies"])
         or "no reply")
-    difference = figures["max_abs_difference"]
+    def number(key: str, form: str = ".2f") -> str:
+        return "n/a" if figures[key] is None else format(figures[key], form)
+
     return (f"[node-check] {figures['estimates_matched']} of {figures['estimates_expected']} estimates "
             f"({figures['estimates_received']} received), max |τ_node − τ_replay| "
-            f"{'n/a' if difference is None else f'{difference:.2e}'} N·m at {figures['rate']:g}x{reload}\n"
-            f"[node-check] latency p50 {figures['latency_ms_p50']:.2f} ms, p99 {figures['latency_ms_p99']:.2f} ms, "
-            f"max {figures['latency_ms_max']:.2f} ms; node CPU {figures['node_cpu_cores']:.2f} core; the node "
+            f"{number('max_abs_difference', '.2e')} N·m at {figures['rate']:g}x{reload}\n"
+            f"[node-check] latency p50 {number('latency_ms_p50')} ms, p99 {number('latency_ms_p99')} ms, "
+            f"max {number('latency_ms_max')} ms; node CPU {figures['node_cpu_cores']:.2f} core; the node "
             f"reported {figures['node_reported_lost']} joint states lost\n"
             f"[node-check] {'MATCH: the node equals replay on every sample' if passed(figures) else 'MISMATCH'}")
 

@@ -53,8 +53,6 @@ from __future__ import annotations
 
 import math
 import sys
-import threading
-from collections.abc import Awaitable
 from collections import Counter
 from typing import Any
 
@@ -67,23 +65,21 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile
-from rclpy.task import Future
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
-from kvark_ros.core.config import NODE_NAME, ROBOT_DESCRIPTION, ConfigError, EstimatorConfig
+from kvark_ros.core.config import NODE_NAME, ROBOT_DESCRIPTION, ConfigError
 from kvark_ros.core.estimator import Estimate, Estimator
 from kvark_ros.core.pairing import RESET, JointColumns, Reject, Sample, StreamPairer, stamp_seconds
 from kvark_ros.core.tare import TareError
 from kvark_ros.ros import parameters
+from kvark_ros.ros.builds import SWITCH_INTERVAL, build, build_off_path
 from kvark_ros.ros.diagnostics import NOT_READY, SERVICE_RESET, StatusBuilder, Window
 from kvark_ros.ros.publishers import SUBSCRIBER_CHECK, EstimatePublishers, qos_profile
 
 URDF_FROM_TOPIC = ROBOT_DESCRIPTION
-SWITCH_INTERVAL = 0.0002   # s a build thread may hold the interpreter before the inputs get it (Python's: 0.005)
 __all__ = ["EstimatorNode", "main", "Drop", "SUBSCRIBER_CHECK", "ConfigError"]
-_BUILD_ERRORS = (ValueError, OSError, RuntimeError, KeyError, TypeError, np.linalg.LinAlgError)
 
 
 class Drop(Reject):
@@ -149,7 +145,7 @@ class EstimatorNode(Node):
             self._model_problem = "waiting for the URDF on robot_description"
             self.get_logger().info("waiting for robot_description to build the estimator")
         else:
-            problem = self._swap_in(self._build(self._config, None), None)
+            problem = self._swap_in(build(self._config, None), None)
             if problem is not None:
                 self._model_problem = problem
                 self.get_logger().error(f"no estimator: {problem} (fix it, then call ~/reload_model)")
@@ -178,23 +174,6 @@ class EstimatorNode(Node):
             f"{n}={self.get_parameter(n).value}" for n in names))
 
     # ------------------------------------------------------------------ the estimator
-
-    @staticmethod
-    def _build(config: EstimatorConfig, urdf_xml: str | None) -> Estimator | str:
-        """A new estimator of ``config`` (``urdf_xml``: the robot_description's URDF), or the problem as text."""
-        try:
-            return Estimator.from_config(config, urdf=urdf_xml)
-        except _BUILD_ERRORS as exc:
-            return str(exc) or type(exc).__name__
-
-    def _build_off_path(self, urdf_xml: str | None) -> Awaitable[Estimator | str]:
-        """``_build`` on a worker thread, so the executor keeps taking samples meanwhile; await the result."""
-        done = Future(executor=self.executor)
-        done.add_done_callback(lambda _future: None)    # with a done callback, set_result wakes the executor
-        config = self._config
-        threading.Thread(target=lambda: done.set_result(self._build(config, urdf_xml)), name="kvark_model_build",
-                         daemon=True).start()
-        return done
 
     def _swap_in(self, built: Estimator | str, urdf_xml: str | None) -> str | None:
         """Put a built estimator in use between two samples, continuing the old one's filter state where joints
@@ -306,7 +285,7 @@ class EstimatorNode(Node):
                 self.get_logger().info(f"robot_description received; keeping robot_model.urdf {self._config.urdf} "
                                        f"(set robot_model.urdf: {URDF_FROM_TOPIC} to build from the topic)")
             return
-        problem = self._swap_in(await self._build_off_path(xml), xml)
+        problem = self._swap_in(await build_off_path(self.executor, self._config, xml), xml)
         if problem is None:
             self.get_logger().info("estimator built from robot_description")
         else:
@@ -365,7 +344,7 @@ class EstimatorNode(Node):
         except ValueError as exc:
             problem: str | None = str(exc)
         else:
-            problem = self._swap_in(await self._build_off_path(urdf_xml), urdf_xml)
+            problem = self._swap_in(await build_off_path(self.executor, self._config, urdf_xml), urdf_xml)
         if problem is None:
             response.success = True
             response.message = f"model reloaded from {self._config.model_dir} (observer {self._config.observer})"

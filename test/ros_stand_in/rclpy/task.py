@@ -11,6 +11,7 @@ class Future:
     def __init__(self, *, executor: Any = None) -> None:
         self._done = threading.Event()
         self._result: Any = None
+        self._exception: BaseException | None = None
         self._callbacks: list[Callable[[Future], None]] = []
 
     def done(self) -> bool:
@@ -25,10 +26,16 @@ class Future:
         for callback in self._callbacks:
             callback(self)
 
+    def set_exception(self, exception: BaseException) -> None:
+        self._exception = exception
+        self.set_result(None)
+
     def add_done_callback(self, callback: Callable[[Future], None]) -> None:
         self._callbacks.append(callback)
 
     def __await__(self):
         while not self._done.is_set():
             yield
+        if self._exception is not None:
+            raise self._exception
         return self._result

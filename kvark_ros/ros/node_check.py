@@ -9,8 +9,8 @@ every τ_ext it publishes, and compares them with ``run_observer`` (what ``kvark
 same bag, config and model.
 
 Reported: estimates received of those replay gives, the largest |Δτ_ext| over the samples both have,
-the latency of each estimate (its publication minus the publication of the joint state it answers, both
-DDS source timestamps, so the recorder's own delay does not count), the node's CPU during playback as a
+the latency of each estimate (its DDS source timestamp minus the system time the player published the joint
+state it answers, so the recorder's own delay does not count), the node's CPU during playback as a
 fraction of one core (``/proc``, Linux), and the input loss the node itself reported on ``/diagnostics``.
 """
 from __future__ import annotations
@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import struct
 import subprocess
 import sys
 import tempfile
@@ -31,7 +32,7 @@ import yaml
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
@@ -50,27 +51,21 @@ __all__ = ["Recorder", "check_node", "main"]
 
 
 class Recorder(Node):
-    """Records the node's τ_ext (with its publication time), the played joint states' publication times, and the
-    node's ``/diagnostics``; calls ``~/reload_model``."""
+    """Records the node's τ_ext (with its publication time) and its ``/diagnostics``; calls ``~/reload_model``."""
 
     def __init__(self, node_name: str) -> None:
         super().__init__("kvark_node_check")
         self.torque: list[tuple[float, list[float], int]] = []       # (stamp s, τ_ext, published ns)
-        self.state_published: dict[float, int] = {}                   # joint-state stamp s -> published ns
         self.diagnostics: list[DiagnosticArray] = []
         self.reload_replies: list[Trigger.Response] = []
         reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         self.create_subscription(JointState, f"/{node_name}/external_joint_torque", self._on_torque, reliable)
-        self.create_subscription(JointState, "joint_states", self._on_state,
-                                 QoSProfile(depth=1000, reliability=qos_profile_sensor_data.reliability))
         self.create_subscription(DiagnosticArray, "/diagnostics", self.diagnostics.append, 10)
         self.reload = self.create_client(Trigger, f"/{node_name}/reload_model")
 
     def _on_torque(self, msg: JointState, info: dict) -> None:
-        self.torque.append((stamp_seconds(msg.header.stamp.sec, msg.header.stamp.nanosec), list(msg.effort), info["source_timestamp"]))
-
-    def _on_state(self, msg: JointState, info: dict) -> None:
-        self.state_published[stamp_seconds(msg.header.stamp.sec, msg.header.stamp.nanosec)] = info["source_timestamp"]
+        stamp = stamp_seconds(msg.header.stamp.sec, msg.header.stamp.nanosec)
+        self.torque.append((stamp, list(msg.effort), info["source_timestamp"]))
 
     def call_reload(self) -> None:
         """Ask for a reload and return at once; the reply lands in ``reload_replies``."""
@@ -206,15 +201,27 @@ def _play_and_record(process: subprocess.Popen, recording, rate: float, reload_a
         time.sleep(0.05)
     spinning.clear()
     spinner.join()
-    latency = np.array([published - recorder.state_published[stamp]
-                        for stamp, _, published in recorder.torque if stamp in recorder.state_published]) / 1e6
+    sent = {stamp: player.sent_ns[k] for k, stamp in state_stamps(recording).items()}
+    answered = [(stamp, published - sent[stamp]) for stamp, _, published in recorder.torque if stamp in sent]
+    latency = np.array([ns for _, ns in answered]) / 1e6
     lost = _diagnostic_value(recorder.diagnostics, "input", "joint_states_lost")
     return {"torque": recorder.torque, "player_late_ms": late * 1e3, "node_cpu_cores": cpu / wall,
             "latency_ms_p50": float(np.percentile(latency, 50)) if latency.size else None,
             "latency_ms_p99": float(np.percentile(latency, 99)) if latency.size else None,
             "latency_ms_max": float(latency.max()) if latency.size else None,
+            "latency_ms_max_at_s": (answered[int(latency.argmax())][0] - min(sent)) if latency.size else None,
             "node_reported_lost": None if lost is None else int(lost),
             "reload_replies": [(reply.success, reply.message) for reply in recorder.reload_replies]}
+
+
+def state_stamps(recording) -> dict[int, float]:
+    """Message index -> header stamp (s) of every joint state of the recording, read from its CDR bytes: a
+    little-endian encapsulation header (4 bytes), then std_msgs/Header's stamp (int32 sec, uint32 nanosec)."""
+    stamps = {}
+    for k, (_, topic, raw) in enumerate(recording.messages):
+        if topic == 0 and raw[1] == 1:                 # joint states, CDR little endian
+            stamps[k] = stamp_seconds(*struct.unpack_from("<iI", raw, 4))
+    return stamps
 
 
 def _diagnostic_value(arrays: list[DiagnosticArray], status_name: str, key: str) -> str | None:
@@ -259,7 +266,7 @@ def summary(figures: dict) -> str:
             f"({figures['estimates_received']} received), max |τ_node − τ_replay| "
             f"{number('max_abs_difference', '.2e')} N·m at {figures['rate']:g}x{reload}\n"
             f"[node-check] latency p50 {number('latency_ms_p50')} ms, p99 {number('latency_ms_p99')} ms, "
-            f"max {number('latency_ms_max')} ms; node CPU {figures['node_cpu_cores']:.2f} core; the node "
+            f"max {number('latency_ms_max')} ms (at {number('latency_ms_max_at_s')} s); node CPU {figures['node_cpu_cores']:.2f} core; the node "
             f"reported {figures['node_reported_lost']} joint states lost\n"
             f"[node-check] {'MATCH: the node equals replay on every sample' if passed(figures) else 'MISMATCH'}")
 

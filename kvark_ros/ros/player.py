@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import rclpy
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
@@ -81,6 +82,7 @@ class BagPlayer(Node):
     def __init__(self, recording: Recording, **kwargs) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.recording = recording
+        self.sent_ns = np.zeros(len(recording.messages), dtype=np.int64)    # system time of each publish, ns
         self.topic_publishers = [self.create_publisher(kind, name, qos_profile_sensor_data)
                             for name, kind in recording.topics]
 
@@ -95,14 +97,15 @@ class BagPlayer(Node):
 
     def play(self, rate: float = 1.0, at: Callable[[float], None] | None = None) -> float:
         """Publish every message at its log time / ``rate`` after the start; ``at(t)`` (if given) is called
-        before each message with its bag time t (s since the first message). The lateness (s) of the most
-        delayed message, so a caller can tell how closely the schedule was held."""
+        before each message with its bag time t (s since the first message); ``sent_ns`` holds when each went
+        out. The lateness (s) of the most delayed message, so a caller can tell how closely the schedule was
+        held."""
         if not self.recording.messages:
             return 0.0
         first = self.recording.messages[0][0]
         start = time.perf_counter()
         late = 0.0
-        for log_ns, topic, raw in self.recording.messages:
+        for index, (log_ns, topic, raw) in enumerate(self.recording.messages):
             bag_time = (log_ns - first) / 1e9
             due = start + bag_time / rate
             wait = due - time.perf_counter()
@@ -112,6 +115,7 @@ class BagPlayer(Node):
                 late = max(late, -wait)
             if at is not None:
                 at(bag_time)
+            self.sent_ns[index] = time.time_ns()
             self.topic_publishers[topic].publish(raw)
         return late
 

@@ -33,7 +33,7 @@ from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Bool, Float64MultiArray, Header, MultiArrayDimension, MultiArrayLayout
+from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension, MultiArrayLayout
 
 from kvark_ros.core.estimator import Estimate
 
@@ -56,8 +56,8 @@ def qos_profile(kind: str, depth: int) -> QoSProfile:
     return QoSProfile(depth=depth)
 
 
-def _wrench(stamp_msg: Any, frame_id: str, values: np.ndarray) -> WrenchStamped:
-    message = WrenchStamped()
+def _wrench(message: WrenchStamped, stamp_msg: Any, frame_id: str, values: np.ndarray) -> WrenchStamped:
+    """``message`` (reused: rclpy serializes at ``publish``) filled with one wrench (6,) N, N·m."""
     message.header.stamp = stamp_msg
     message.header.frame_id = frame_id
     force, torque = message.wrench.force, message.wrench.torque
@@ -94,27 +94,36 @@ class EstimatePublishers:
         self.covariance = create(Float64MultiArray, "~/external_wrench_covariance", qos)
         self.contact = create(Bool, "~/contact", qos)
         self.collision = create(Bool, "~/collision", qos)
+        # One message per topic, filled anew for every estimate (rclpy serializes at publish): the hot path
+        # builds no message objects, and the joint names are set once.
+        self._torque_msg = JointState(name=self.names)
+        self._wrench_msgs = (WrenchStamped(), WrenchStamped(), WrenchStamped())    # wrench.frame, base, ee axes
+        self._contact_msg, self._collision_msg = Bool(), Bool()
 
     def publish(self, estimate: Estimate, stamp_msg: Any, base_frame: str, ee_frame: str) -> None:
         """Every topic's message of one estimate, stamped with the input's stamp."""
-        self.torque.publish(JointState(header=Header(stamp=stamp_msg), name=self.names,
-                                       effort=_doubles(estimate.tau_ext)))
+        torque = self._torque_msg
+        torque.header.stamp = stamp_msg
+        torque.effort = _doubles(estimate.tau_ext)
+        self.torque.publish(torque)
         axes = estimate.wrench_frame
-        wrench = _wrench(stamp_msg, base_frame if axes == "base" else ee_frame, estimate.wrench)
+        in_axes, in_base, in_ee = self._wrench_msgs
+        wrench = _wrench(in_axes, stamp_msg, base_frame if axes == "base" else ee_frame, estimate.wrench)
         self.wrench.publish(wrench)
         if self.base_wanted:
             self.wrench_base.publish(wrench if axes == "base" else
-                                     _wrench(stamp_msg, base_frame, estimate.wrench_in("base")))
+                                     _wrench(in_base, stamp_msg, base_frame, estimate.wrench_in("base")))
         if self.ee_wanted:
             self.wrench_ee.publish(wrench if axes == "end_effector" else
-                                   _wrench(stamp_msg, ee_frame, estimate.wrench_in("end_effector")))
+                                   _wrench(in_ee, stamp_msg, ee_frame, estimate.wrench_in("end_effector")))
         if estimate.tau_cov is not None and self.uncertainty_wanted:
             stddev = np.sqrt(np.maximum(np.diag(estimate.tau_cov), 0.0))
             self.stddev.publish(Float64MultiArray(layout=self._stddev_layout, data=_doubles(stddev)))
             self.covariance.publish(Float64MultiArray(layout=self._covariance_layout,
                                                       data=_doubles(estimate.wrench_cov.ravel())))
-        self.contact.publish(Bool(data=estimate.contact))
-        self.collision.publish(Bool(data=estimate.collision))
+        self._contact_msg.data, self._collision_msg.data = estimate.contact, estimate.collision
+        self.contact.publish(self._contact_msg)
+        self.collision.publish(self._collision_msg)
         self.published += 1
         if self.published % SUBSCRIBER_CHECK == 0:
             self.check_subscribers()

@@ -9,6 +9,8 @@ Topics, services and timers live in ``ros_stand_in_core.GRAPH``.
 """
 from __future__ import annotations
 
+import copy
+
 import inspect
 
 import math
@@ -42,6 +44,7 @@ class Publisher:
             raise RuntimeError(f"stand-in: publisher of {self.topic_name} was destroyed")
         if not isinstance(msg, self.msg_type):
             raise TypeError(f"Expected {self.msg_type}, got {type(msg)}")
+        msg = copy.deepcopy(msg)            # rclpy serializes at publish: the caller may reuse its message
         self.messages.append(msg)
         _core.GRAPH.deliver(self.topic_name, msg)
 

@@ -254,3 +254,12 @@ def test_play_refuses_a_bag_without_the_configured_topic(tmp_path):
     recording = read_recording(BAG, "joint_states", "effort_commands")
     assert len(recording.messages) == 5000 and recording.duration == pytest.approx(5.0, abs=0.01)
     assert [name for name, _ in recording.topics] == ["joint_states", "effort_commands"]
+
+
+@pytest.mark.parametrize("rate", ["0", "-1", "nan", "inf", "fast"])
+def test_play_and_node_check_refuse_a_rate_that_is_not_a_speed_up(rate, capsys):
+    from kvark_ros.cli import main as kvark
+    for command in (["play", str(BAG)], ["node-check", "--config", str(CONFIG), "--bag", str(BAG)]):
+        with pytest.raises(SystemExit) as stop:
+            kvark([*command, "--rate", rate])
+        assert stop.value.code == 2 and "must be a number > 0" in capsys.readouterr().err

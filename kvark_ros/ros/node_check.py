@@ -42,7 +42,7 @@ from kvark_ros.core.model_store import load_model
 from kvark_ros.core.pairing import stamp_seconds
 from kvark_ros.core.robot_model import urdf_sha256
 from kvark_ros.io.alignment import read_inputs
-from kvark_ros.ros.player import BagPlayer, read_recording
+from kvark_ros.ros.player import BagPlayer, playback_rate, read_recording
 from kvark_ros.tools.replay import run_observer
 
 TOLERANCE = 1e-9            # N·m: the node and replay run the same code on the same numbers
@@ -281,7 +281,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--config", required=True, help="estimator config YAML (the node's parameter file)")
     parser.add_argument("--model", help="model directory (default: residual_model.model_dir of the config)")
     parser.add_argument("--bag", required=True, help="bag to play (its joint states and effort commands)")
-    parser.add_argument("--rate", type=float, default=1.0, help="playback speed (1 = real time, 2 = twice as fast)")
+    parser.add_argument("--rate", type=playback_rate, default=1.0, help="playback speed (1 = real time, 2 = twice as fast)")
     parser.add_argument("--reload-at", type=float, metavar="SECONDS",
                         help="call ~/reload_model when the bag reaches SECONDS (the reply is not waited for)")
     parser.add_argument("--domain-id", type=int, help=f"ROS_DOMAIN_ID to use (default: drawn from "
@@ -291,8 +291,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not args.rate > 0.0:
-        raise ValueError(f"--rate must be > 0, got {args.rate}")
     figures = check_node(args.config, args.bag, args.model, args.rate, args.reload_at, args.domain_id)
     print(summary(figures), flush=True)
     if args.json:
@@ -303,11 +301,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main() -> int:
-    """``python -m kvark_ros.ros.node_check …``: the same as ``kvark node-check``."""
-    parser = argparse.ArgumentParser(prog="kvark_node_check")
-    add_parser(parser.add_subparsers())
-    args = parser.parse_args(["node-check", *sys.argv[1:]])
-    return args.run(args)
+    """``python -m kvark_ros.ros.node_check …``: ``kvark node-check …``, with its error handling."""
+    from kvark_ros.cli import main as kvark
+    return kvark(["node-check", *sys.argv[1:]])
 
 
 if __name__ == "__main__":

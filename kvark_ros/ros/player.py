@@ -11,6 +11,7 @@ QoS the node subscribes with. Before the first message the player waits until ev
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -120,6 +121,17 @@ class BagPlayer(Node):
         return late
 
 
+def playback_rate(text: str) -> float:
+    """``--rate``: a speed-up factor > 0 (argparse type)."""
+    try:
+        rate = float(text)
+    except ValueError:
+        rate = math.nan
+    if not rate > 0.0 or math.isinf(rate):
+        raise argparse.ArgumentTypeError(f"must be a number > 0 (1 = real time), got {text!r}")
+    return rate
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "play", help="publish a bag's joint states and effort commands to ROS 2 (rclpy)",
@@ -131,7 +143,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--config", default=str(Path(__file__).resolve().parents[2] / "config" / "panda.yaml"),
                         help="estimator config whose input.joint_states_topic and input.effort_commands_topic are "
                              "played (default: config/panda.yaml)")
-    parser.add_argument("--rate", type=float, default=1.0, help="playback speed, 1 = real time (default), 2 = twice "
+    parser.add_argument("--rate", type=playback_rate, default=1.0, help="playback speed, 1 = real time (default), 2 = twice "
                                                                 "as fast")
     parser.add_argument("--wait", type=float, default=10.0, metavar="SECONDS",
                         help="wait up to SECONDS for a subscriber on every topic before playing (default 10; "
@@ -142,8 +154,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not args.rate > 0.0:
-        raise BagError(f"--rate must be > 0, got {args.rate}")
     config = load_config(args.config)
     recording = read_recording(args.bag, config.input.joint_states_topic, config.input.effort_commands_topic)
     rclpy.init(args=["kvark_play", "--ros-args", *args.ros_args] if args.ros_args else None)
@@ -165,11 +175,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main() -> int:
-    """``python -m kvark_ros.ros.player BAG ...``: the same as ``kvark play``."""
-    parser = argparse.ArgumentParser(prog="kvark_player")
-    add_parser(parser.add_subparsers())
-    args = parser.parse_args(["play", *sys.argv[1:]])
-    return args.run(args)
+    """``python -m kvark_ros.ros.player …``: ``kvark play …``, with its error handling."""
+    from kvark_ros.cli import main as kvark
+    return kvark(["play", *sys.argv[1:]])
 
 
 if __name__ == "__main__":

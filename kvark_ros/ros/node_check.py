@@ -168,8 +168,9 @@ def _play_and_record(process: subprocess.Popen, recording, rate: float, reload_a
     if process.poll() is not None or not ready:
         raise RuntimeError(f"the node did not come up within {start_timeout:g} s (exit code {process.poll()})")
     player.wait_for_subscribers(10.0)
+    reload = "" if reload_at is None else f", ~/reload_model at {reload_at:g} s"
     log(f"[node-check] node up in {time.monotonic() - started:.1f} s; playing {len(recording.messages)} messages, "
-        f"{recording.duration:.2f} s at {rate:g}x" + (f", ~/reload_model at {reload_at:g} s" if reload_at else ""))
+        f"{recording.duration:.2f} s at {rate:g}x{reload}")
     spinning = threading.Event()
     spinning.set()
 

@@ -15,9 +15,9 @@ from __future__ import annotations
 import math
 import os
 import platform
-import subprocess
 import sys
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
@@ -99,17 +99,14 @@ class LiveNode:
         config = _config_with(tmp_path, **changes)
         parameters = node_check.node_parameters_file(config, load_config(config), load_config(config).model_dir,
                                                      tmp_path)
-        env = {**os.environ, "ROS_DOMAIN_ID": str(self.domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-               "ROS_LOG_DIR": str(tmp_path / "log")}
+        ros_env = node_check.local_domain(self.domain, tmp_path / "log")
+        env = {**os.environ, **ros_env}
         env.pop("AMENT_PREFIX_PATH", None)                  # as after a pip install: no ament environment
         self.log = tmp_path / "node.log"
         with open(self.log, "w") as log:
-            self.process = subprocess.Popen([sys.executable, "-m", "kvark_ros.ros.estimator_node", "--ros-args",
-                                             "--params-file", str(parameters)], env=env, stdout=log,
-                                            stderr=subprocess.STDOUT)
-        self.saved = {key: os.environ.get(key) for key in ("ROS_AUTOMATIC_DISCOVERY_RANGE",)}
-        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-        rclpy.init(domain_id=self.domain)
+            self.process = node_check.start_node(parameters, env, log)
+        self.domain_joined = ExitStack()
+        self.domain_joined.enter_context(node_check.joined(ros_env))
         self.client = rclpy.create_node("kvark_test_client")
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.client)
@@ -124,11 +121,8 @@ class LiveNode:
     def close(self) -> None:
         self.executor.shutdown()
         self.client.destroy_node()
-        rclpy.try_shutdown()
-        for key, value in self.saved.items():
-            os.environ.pop(key, None) if value is None else os.environ.__setitem__(key, value)
-        self.process.terminate()
-        self.process.wait(timeout=20)
+        self.domain_joined.close()
+        node_check.stop_node(self.process, timeout=20.0)
 
     def spin_until(self, condition, timeout: float) -> None:
         deadline = time.monotonic() + timeout

@@ -24,6 +24,7 @@ import sys
 import tempfile
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +37,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from kvark_ros.core.config import NODE_NAME, EstimatorConfig, flatten_parameters, load_config
+from kvark_ros.core.config import NODE_NAME, EstimatorConfig, load_config
 from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.model_store import load_model
 from kvark_ros.core.pairing import stamp_seconds
@@ -82,19 +83,49 @@ def node_parameters_file(config_path: str | os.PathLike, config: EstimatorConfig
                          folder: Path) -> Path:
     """The config file's parameters with absolute paths and ``model_dir``, as a node parameter file in ``folder``."""
     document = yaml.safe_load(Path(config_path).read_text())
-    flat = flatten_parameters(document[NODE_NAME]["ros__parameters"])
-    flat.update({"residual_model.model_dir": str(Path(model_dir).resolve()), "robot_model.urdf": config.urdf,
-                 "model_augmentation": config.model_augmentation})
-    nested: dict = {}
-    for name, value in flat.items():
-        *groups, key = name.split(".")
-        holder = nested
-        for group in groups:
-            holder = holder.setdefault(group, {})
-        holder[key] = value
+    parameters = document[NODE_NAME]["ros__parameters"]
+    parameters.setdefault("residual_model", {})["model_dir"] = str(Path(model_dir).resolve())
+    parameters.setdefault("robot_model", {})["urdf"] = config.urdf
+    parameters["model_augmentation"] = config.model_augmentation
     path = folder / "parameters.yaml"
-    write_text_atomically(path, yaml.safe_dump({NODE_NAME: {"ros__parameters": nested}}, sort_keys=False))
+    write_text_atomically(path, yaml.safe_dump(document, sort_keys=False))
     return path
+
+
+def local_domain(domain: int, log_dir: Path) -> dict[str, str]:
+    """The variables that put a ROS 2 process on domain ``domain``, on this machine only, logging to ``log_dir``."""
+    return {"ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_LOG_DIR": str(log_dir)}
+
+
+def start_node(parameters: Path, env: dict[str, str], output) -> subprocess.Popen:
+    """``estimator_node`` as ``ros2 run`` starts it, with the whole environment ``env``, its output to ``output``."""
+    return subprocess.Popen([sys.executable, "-m", "kvark_ros.ros.estimator_node", "--ros-args", "--params-file",
+                             str(parameters)], env=env, stdout=output, stderr=subprocess.STDOUT)
+
+
+def stop_node(process: subprocess.Popen, timeout: float = 10.0) -> None:
+    """SIGTERM, then SIGKILL after ``timeout`` s."""
+    process.terminate()
+    try:
+        process.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
+@contextmanager
+def joined(ros_env: dict[str, str]):
+    """This process on the domain of ``ros_env`` (``local_domain``): the variables set and rclpy initialised
+    while inside; both undone on exit."""
+    saved = {key: os.environ.get(key) for key in ros_env}
+    os.environ.update(ros_env)
+    rclpy.init(domain_id=int(ros_env["ROS_DOMAIN_ID"]))
+    try:
+        yield
+    finally:
+        rclpy.try_shutdown()
+        for key, value in saved.items():
+            os.environ.pop(key) if value is None else os.environ.__setitem__(key, value)
 
 
 def _cpu_seconds(pid: int) -> float:
@@ -121,32 +152,19 @@ def check_node(config_path: str, bag: str, model_dir: str | None = None, rate: f
     recording = read_recording(bag, config.input.joint_states_topic, config.input.effort_commands_topic)
     domain = domain_id if domain_id is not None else int(np.random.default_rng().integers(*DOMAIN_RANGE))
     with tempfile.TemporaryDirectory(prefix="kvark_node_check_") as scratch:
-        ros_env = {"ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST",
-                   "ROS_LOG_DIR": str(Path(scratch) / "log")}
-        env = {**os.environ, **ros_env}
+        ros_env = local_domain(domain, Path(scratch) / "log")
         parameters = node_parameters_file(config_path, config, model_dir, Path(scratch))
         node_log = open(Path(scratch) / "node.log", "w+")
-        process = subprocess.Popen([sys.executable, "-m", "kvark_ros.ros.estimator_node", "--ros-args",
-                                    "--params-file", str(parameters)], env=env, stdout=node_log,
-                                   stderr=subprocess.STDOUT)
-        saved = {key: os.environ.get(key) for key in ros_env}
-        os.environ.update(ros_env)               # this process's participant: the same domain, loopback only
-        rclpy.init(domain_id=domain)
+        process = start_node(parameters, {**os.environ, **ros_env}, node_log)
         figures: dict = {}
         try:
-            figures = _play_and_record(process, recording, rate, reload_at, start_timeout, log)
+            with joined(ros_env):
+                figures = _play_and_record(process, recording, rate, reload_at, start_timeout, log)
         except RuntimeError as exc:
             node_log.seek(0)
             raise RuntimeError(f"{exc}; the node's log:\n{node_log.read()[-2000:]}") from exc
         finally:
-            rclpy.try_shutdown()
-            for key, value in saved.items():
-                os.environ.pop(key) if value is None else os.environ.__setitem__(key, value)
-            process.terminate()
-            try:
-                process.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                process.kill()
+            stop_node(process)
             node_log.seek(0)
             figures["node_log_tail"] = node_log.read()[-2000:]
             node_log.close()

@@ -1,13 +1,15 @@
 """K-VARK and its ablations: equations, convergence on a synthetic arm, long-run health of P."""
 from __future__ import annotations
 
+import importlib
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from kvark_ros.core.estimator import Estimator
-from kvark_ros.core.observers import FilterTuning, make_observer
+from kvark_ros.core.observer_catalog import OBSERVERS
+from kvark_ros.core.observers import OBSERVER_NAMES, FilterTuning, ObserverError, make_observer
 from kvark_ros.core.observers.kvark_filter import VARIANTS, KVARKFilter, kalman_update
 from kvark_ros.core.residual import GMRReference, KMPHyperparameters, KMPResidualModel
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream
@@ -328,3 +330,23 @@ def test_onset_detector_stays_quiet_without_a_jump(panda_config, rng):
     for _ in _random_walk_run(observer, n, h, q0, R, 10000, rng):
         pass
     assert observer.onset.alarms == 0
+
+
+
+def test_every_observer_of_the_catalog_is_built_by_its_module(panda_config, panda_trained):
+    """``observer_catalog`` is the one list of observers: each name's module builds an observer of that name, or
+    refuses with an ObserverError saying what is missing (the oracle's plant, a baseline's residual model)."""
+    for entry in OBSERVERS:
+        build = importlib.import_module(entry.module).build
+        if entry.name == "oracle":
+            with pytest.raises(ObserverError, match="--plant"):
+                build(entry.name, panda_trained, panda_config.filter)
+        elif entry.name not in VARIANTS and entry.name not in panda_trained.baselines and entry.module.endswith(
+                "learned_baselines"):
+            with pytest.raises(ObserverError, match="--no-baselines"):
+                build(entry.name, panda_trained, panda_config.filter)
+        else:
+            assert build(entry.name, panda_trained, panda_config.filter).name == entry.name
+    assert OBSERVER_NAMES == tuple(entry.name for entry in OBSERVERS)
+    with pytest.raises(ObserverError, match="unknown observer 'nope'; known: kvark, kf"):
+        make_observer("nope", panda_trained, panda_config.filter)

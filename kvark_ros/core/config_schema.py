@@ -15,8 +15,8 @@ import math
 from dataclasses import dataclass
 from typing import Any, Callable
 
-OBSERVER_NAMES = ("kvark", "kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "gmr_gp", "gpadkf", "nnadkf",
-                  "momentum", "kfmo", "sh_akfmo", "vbkfmo_q", "eso", "oracle")
+from kvark_ros.core.observer_catalog import OBSERVER_NAMES
+
 WRENCH_FRAMES = ("base", "end_effector")
 VB_VARIANTS = ("paper", "huang", "smoothed", "window")
 MEASUREMENTS = ("momentum", "difference")

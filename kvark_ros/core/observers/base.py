@@ -16,6 +16,10 @@ from kvark_ros.core.config_schema import KEYS_BY_NAME
 DEFAULT_SAMPLE_PERIOD = 0.002
 
 
+class ObserverError(ValueError):
+    """An observer cannot be built from what was given (model, oracle); the message says what to do."""
+
+
 @dataclass(frozen=True)
 class PerSample:
     """The ``filter.*`` times of the config at one sample period t_s (docs/method.md §4.9).

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
+from kvark_ros.core.observers.momentum_noise import MomentumNoise, torque_density_for_bandwidth
 from kvark_ros.core.observers.momentum_observers import (
-    MOMENTUM_OBSERVER_NAMES, ExtendedStateObserver, KFMomentumObserver, MomentumNoise, MomentumObserver,
-    SageHusaKFMomentumObserver, VBKFMomentumObserver, make_momentum_observer, torque_density_for_bandwidth)
+    MOMENTUM_OBSERVER_NAMES, ExtendedStateObserver, KFMomentumObserver, MomentumObserver, SageHusaKFMomentumObserver,
+    VBKFMomentumObserver, make_momentum_observer)
 
 KF_NAMES = ("kfmo", "sh_akfmo", "vbkfmo_q")
 TAU = np.array([3.0, -2.0, 1.5, 2.0, -1.0, 0.8, 0.5])        # N·m

@@ -92,7 +92,7 @@ def test_observers_converge_to_a_step_external_torque(panda, panda_config, panda
 def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_config, rng, measurement, vb_variant,
                                                                      steps):
     from kvark_ros.core.observers.kvark_momentum import KVARKMomentumFilter
-    from kvark_ros.core.observers.momentum_observers import MomentumNoise
+    from kvark_ros.core.observers.momentum_noise import MomentumNoise
     config = replace(panda_config.filter, measurement=measurement, vb_variant=vb_variant)
     if measurement == "difference":
         observer = KVARKFilter("kvark", flat_residual(7), tuning(7), config)
@@ -152,7 +152,8 @@ def test_unknown_observer_is_refused(panda_config):
 def test_smoothed_vb_statistic_equals_the_matrix_rts_smoother(panda_config, rng):
     """The closed form of E[(τ_k − τ_{k−1})² | y_1:k] equals the lag-one RTS smoother in matrix form."""
     from kvark_ros.core.observers.kvark_momentum import KVARKMomentumFilter
-    from kvark_ros.core.observers.momentum_observers import MomentumNoise, joseph_update
+    from kvark_ros.core.observers.momentum_noise import MomentumNoise
+    from kvark_ros.core.observers.momentum_observers import joseph_update
     tuning_ = FilterTuning(np.full(1, 5.0), np.full(1, 0.05), np.full(1, 0.02), np.full(1, 0.01))
     observer = KVARKMomentumFilter("kvark", flat_residual(1), tuning_, MomentumNoise.default(1), panda_config.filter)
     h = 0.002
@@ -195,7 +196,7 @@ def _random_walk_run(observer, n: int, h: float, density: float, R: float, steps
 
 def _window_filter(panda_config, n: int, q0: float, R: float, variant: str = "window", **settings):
     from kvark_ros.core.observers.kvark_momentum import KVARKMomentumFilter
-    from kvark_ros.core.observers.momentum_observers import MomentumNoise
+    from kvark_ros.core.observers.momentum_noise import MomentumNoise
     tuning_ = FilterTuning(np.full(n, 5.0), np.full(n, 0.05), np.full(n, 0.02), np.full(n, 1e-4))
     noise = MomentumNoise(np.full(n, R), np.full(n, q0), np.full(n, 1e-8))
     config = replace(panda_config.filter, measurement="momentum", vb_variant=variant, vb_window_time=0.05,

@@ -9,7 +9,7 @@ import pytest
 from kvark_ros.core.estimator import Estimator
 from kvark_ros.core.inputs import EstimatorInputs
 from kvark_ros.core.observers import make_observer
-from kvark_ros.core.observers.momentum_observers import MomentumNoise, torque_density_for_bandwidth
+from kvark_ros.core.observers.momentum_noise import MomentumNoise, torque_density_for_bandwidth
 from kvark_ros.core.training import train_model
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream
 

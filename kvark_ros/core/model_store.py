@@ -22,7 +22,7 @@ from kvark_ros import __version__
 from kvark_ros.core.augmentation import Augmentation, AugmentationError, parse_augmentation
 from kvark_ros.core.files import read_yaml, umask_mode
 from kvark_ros.core.observers.base import DEFAULT_SAMPLE_PERIOD, FilterTuning
-from kvark_ros.core.observers.momentum_observers import MomentumNoise
+from kvark_ros.core.observers.momentum_noise import MomentumNoise
 from kvark_ros.core.residual import LEARNED_BASELINES, KMPResidualModel, ResidualModelError
 from kvark_ros.core.calibration import IntervalScale
 from kvark_ros.core.stiction import StictionBand

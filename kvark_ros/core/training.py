@@ -29,7 +29,7 @@ from kvark_ros.core.model_store import TrainedModel
 from kvark_ros.core.model_checks import data_source
 from kvark_ros.core.observers import make_observer
 from kvark_ros.core.observers.base import FilterTuning
-from kvark_ros.core.observers.momentum_observers import MomentumNoise
+from kvark_ros.core.observers.momentum_noise import MomentumNoise
 from kvark_ros.core.residual import INPUT_KINDS, LEARNED_BASELINES, KMPResidualModel
 from kvark_ros.core.residual.common import joint_workers, single_threaded
 from kvark_ros.core.residual.kmp_inputs import fit_kmp, second_inputs, start_kmp_fit

@@ -29,7 +29,8 @@ from kvark_ros.core.config import FilterSettings
 from kvark_ros.core.config_schema import vb_variant_problem
 from kvark_ros.core.observers.base import DEFAULT_SAMPLE_PERIOD, FilterTuning, PerSample, ResidualPredictor
 from kvark_ros.core.observers.kvark_filter import NIS_SCALE_BOUNDS, VARIANTS
-from kvark_ros.core.observers.momentum_observers import KFMomentumObserver, MomentumNoise, joseph_update
+from kvark_ros.core.observers.momentum_noise import MomentumNoise
+from kvark_ros.core.observers.momentum_observers import KFMomentumObserver, joseph_update
 from kvark_ros.core.observers.onset import Jump, OnsetDetector
 from kvark_ros.core.observers.window_vb import WindowVB
 

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import ast
 import builtins
+import enum
+import hashlib
 import os
 import subprocess
 import sys
@@ -21,17 +23,17 @@ import numba
 import numpy as np
 import pytest
 
-from kvark_ros.core import model_kernels, step_kernel
+from kvark_ros.core import kernel_layouts, model_kernels, step_kernel
 from kvark_ros.core.augmentation import parse_augmentation
 from kvark_ros.core.calibration import IntervalScale
-from kvark_ros.core.compiled_step import _augmentation_entries
+from kvark_ros.core.compiled_step import augmentation_entries
 from kvark_ros.core.config import load_config
 from kvark_ros.core.estimator import Estimator, Status
 from kvark_ros.core.model_kernels import augmentation_torque, kmp_predict_pose
 from kvark_ros.core.model_store import load_model
 from kvark_ros.core.observers import make_observer
 from kvark_ros.core.observers.kvark_filter import KVARKFilter
-from kvark_ros.core.observers.kvark_kernel import KVARKKernelFilter
+from kvark_ros.core.observers.kvark_kernel import KVARKKernelFilter, pose_arguments
 from kvark_ros.core.observers.kvark_momentum import KVARKMomentumFilter
 from kvark_ros.core.residual.common import VARIANCE_FLOOR
 from kvark_ros.core.residual.kmp_inputs import fit_kmp, second_inputs
@@ -168,7 +170,7 @@ def test_the_model_kernels_equal_their_references(posed, inputs):
     ``Augmentation.joint_torque`` on the bag's samples and 1 rad(/s) away from them: the means and τ_aug to 1e-12 N·m
     (measured 1e-14), the variances to 1e-10 relative (measured 2e-12: σ_f² − ‖W e‖² cancels digits near the data)."""
     kmp, augmentation = posed.residual, posed.augmentation
-    pose, entries = KVARKKernelFilter._pose_kmp(kmp), _augmentation_entries(augmentation)
+    pose, entries = pose_arguments(kmp), augmentation_entries(augmentation)
     data, rng = inputs["panda_collision"], np.random.default_rng(4)
     mean, var, torque = np.empty(7), np.empty(7), np.empty(7)
     for k in range(0, len(data.stamp), 25):
@@ -188,7 +190,7 @@ def test_pose_inputs_and_the_augmentation_are_compiled(config, posed, inputs):
     two-input variances differ by ~2e-12 relative (the test above), which the onset detector's running sums carry
     to 4e-12 of their size (measured), beyond RELATIVE's 1e-12 but 25 × inside this bound."""
     reference, kernel = _pair(config, posed)
-    assert kernel.observer._pose is not None and kernel._compiled._aug_entries is not None
+    assert kernel.observer._pose is not None and kernel._compiled._aug_arguments is not None
     _assert_equal_to_rounding(_run(reference, inputs["panda_collision"]), _run(kernel, inputs["panda_collision"]))
     _assert_states_close(reference.observer.state(), kernel.observer.state(), relative=1e-10)
 
@@ -324,12 +326,19 @@ def test_nothing_compiles_after_construction(config, inputs, model, request):
 @pytest.mark.parametrize("module, count", [(step_kernel, 10), (model_kernels, 2)])
 def test_the_kernels_depend_on_no_other_module(module, count):
     """numba's cache is keyed on a kernel's own file alone, so every global its compiled functions read is defined in
-    that file (or is numba, numpy, math or a builtin): no other module's function or constant can go stale."""
+    that file (or is numba, numpy, math or a builtin), or is a layout of ``kernel_layouts`` (an enum whose members the
+    kernels read as constants) whose file the kernel's file pins by ``LAYOUTS_DIGEST``: no other module's function or
+    constant can go stale in the cache."""
+    assert module.LAYOUTS_DIGEST == hashlib.sha256(Path(kernel_layouts.__file__).read_bytes()).hexdigest(), (
+        f"core/kernel_layouts.py changed: set LAYOUTS_DIGEST in {Path(module.__file__).name} to its sha256")
     tree = ast.parse(Path(module.__file__).read_text())
-    defined = {node.name for node in tree.body if isinstance(node, ast.FunctionDef)}
+    defined = {node.name for node in tree.body if isinstance(node, (ast.FunctionDef, ast.ClassDef))}
     defined |= {target.id for node in tree.body if isinstance(node, ast.Assign) for target in ast.walk(node)
                 if isinstance(target, ast.Name) and isinstance(target.ctx, ast.Store)}
-    allowed = defined | {"np", "math", "numba"} | set(vars(builtins))
+    layouts = {name for name, value in vars(kernel_layouts).items() if isinstance(value, enum.EnumMeta)
+               and value.__module__ == kernel_layouts.__name__}
+    layouts |= {name for name, value in vars(kernel_layouts).items() if name.isupper() and isinstance(value, int)}
+    allowed = defined | layouts | {"np", "math", "numba"} | set(vars(builtins))
     kernels = [value for value in vars(module).values() if isinstance(value, numba.core.dispatcher.Dispatcher)
                and value.py_func.__module__ == module.__name__]
     assert len(kernels) >= count
@@ -337,6 +346,9 @@ def test_the_kernels_depend_on_no_other_module(module, count):
         code = kernel.py_func.__code__
         read = {name for name in code.co_names if name in vars(module) or name in vars(builtins)}
         assert read <= allowed, (code.co_name, read - allowed)
+        for name in read & layouts:
+            value = vars(module)[name]
+            assert value is getattr(kernel_layouts, name), (code.co_name, name)
 
 
 def test_kernels_import_without_a_writable_cache():

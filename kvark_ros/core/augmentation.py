@@ -78,6 +78,18 @@ class TorqueEffect:
     theta: np.ndarray
 
 
+@dataclass(frozen=True)
+class TorqueTerm:
+    """One torque effect on one joint: ``joint_torque`` adds Σ_c column_c θ_c to τ_aug of ``joint``, the columns
+    ``joint_columns(name, …)`` of the effect's variant."""
+
+    name: str                           # the effect, one of TORQUE_EFFECTS
+    joint: int                          # joint index
+    epsilon: float                      # tanh width ε of the smoothed sign(q̇), rad/s (TANH_EPSILON by default)
+    second: float                       # the variant's v_s rad/s (Stribeck) or k (ripple: cycles_per_rev), else 0.0
+    theta: tuple[float, float]          # θ: (θ₁, θ₂) of the ripple, (θ, 0.0) of the others
+
+
 @dataclass(frozen=True, eq=False)
 class Augmentation:
     """A parsed augmentation for an n-joint model.
@@ -108,6 +120,19 @@ class Augmentation:
             for c, column in enumerate(columns):
                 total[..., j] += column * effect.theta[:, c]
         return total
+
+    def torque_terms(self) -> tuple[TorqueTerm, ...]:
+        """``torque_effects`` one effect and joint at a time, in the order ``joint_torque`` adds them (for a compiled
+        τ_aug, ``core.compiled_step``)."""
+        terms = []
+        for effect in self.torque_effects:
+            variant = effect.variant
+            epsilon = variant.get("epsilon", TANH_EPSILON)
+            second = variant.get("stribeck_velocity", variant.get("cycles_per_rev", 0.0))
+            for joint, theta in zip(effect.joints, effect.theta):
+                padded = (float(theta[0]), float(theta[1]) if theta.shape[0] > 1 else 0.0)
+                terms.append(TorqueTerm(effect.name, int(joint), epsilon, second, padded))
+        return tuple(terms)
 
 
 def _fail(source: str, problem: str) -> AugmentationError:

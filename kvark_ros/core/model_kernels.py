@@ -4,20 +4,22 @@
 ``Augmentation.joint_torque``) to rounding (``test/test_kernel.py``); they cost 3-15 µs where the references cost
 30-90 µs per sample.
 
-Like ``step_kernel`` (whose docstring says why) every number comes from the arguments or from this file's own
-constants: numba's on-disk cache is keyed on this file alone. No kernel of ``step_kernel`` calls these.
+Like ``step_kernel`` (whose docstring says why) every number comes from the arguments, from this file's own constants
+or from the layouts of ``core.kernel_layouts`` (``Pose``, ``Effect``), whose content ``LAYOUTS_DIGEST`` pins here:
+numba's on-disk cache is keyed on this file alone. No kernel of ``step_kernel`` calls these.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from kvark_ros.core.step_kernel import _jit
+from kvark_ros.core.kernel_layouts import Effect, Pose
+from kvark_ros.core.step_kernel import jit
 
-# Rows of ``kmp_predict_pose``'s ``pose`` (7, n): −1/(2ℓ²), −1/(2ℓ_z²), σ_f², N/λ₂, takes q, takes g, two-input.
-K_LS, K_LS_Z, K_SIGMA_F2, K_VAR_SCALE, K_TAKES_Q, K_TAKES_G, K_TWO_INPUT = range(7)
+# sha256 of core/kernel_layouts.py (its docstring): update it with the file, so numba recompiles these kernels.
+LAYOUTS_DIGEST = "5ff0cdce7b0c1da361f4a81a603705dd7dc37eabdae4ac00528c943ec4b7e419"
 
 
-@_jit
+@jit
 def kmp_predict_pose(qd: np.ndarray, q: np.ndarray, g: np.ndarray, pose: np.ndarray, support: np.ndarray,
                      support2: np.ndarray, weights_t: np.ndarray, floor_weights_t: np.ndarray, w: np.ndarray,
                      e: np.ndarray, f: np.ndarray, floor: float, mean: np.ndarray, var: np.ndarray) -> None:
@@ -29,17 +31,17 @@ def kmp_predict_pose(qd: np.ndarray, q: np.ndarray, g: np.ndarray, pose: np.ndar
     n, n_support = support.shape
     rows = weights_t.shape[2]
     for j in range(n):
-        z = pose[K_TAKES_Q, j] * q[j] + pose[K_TAKES_G, j] * g[j]
+        z = pose[Pose.TAKES_Q, j] * q[j] + pose[Pose.TAKES_G, j] * g[j]
         w[:] = 0.0
         nearest = 0.0
         for i in range(n_support):
             a, b = qd[j] - support[j, i], z - support2[j, i]
-            e[i] = np.exp(a * a * pose[K_LS, j] + b * b * pose[K_LS_Z, j])        # k_*/σ_f², eq. 21
+            e[i] = np.exp(a * a * pose[Pose.LS, j] + b * b * pose[Pose.LS_Z, j])  # k_*/σ_f², eq. 21
             nearest = max(nearest, e[i])
             for r in range(rows):
                 w[r] += weights_t[j, i, r] * e[i]
-        sigma_f2 = pose[K_SIGMA_F2, j]
-        if pose[K_TWO_INPUT, j] != 0.0:                                           # the GP on every support point
+        sigma_f2 = pose[Pose.SIGMA_F2, j]
+        if pose[Pose.TWO_INPUT, j] != 0.0:                                        # the GP on every support point
             f[:] = 0.0
             for i in range(n_support):                                            # L_K⁻¹ e, column by column
                 for r in range(n_support):
@@ -54,14 +56,10 @@ def kmp_predict_pose(qd: np.ndarray, q: np.ndarray, g: np.ndarray, pose: np.ndar
         for r in range(1, rows):
             quad += w[r] * w[r]
         mean[j] = w[0]                                                              # eq. 22
-        var[j] = max(max(pose[K_VAR_SCALE, j] * (sigma_f2 - quad), far), floor)    # eq. 23, floors
+        var[j] = max(max(pose[Pose.VAR_SCALE, j] * (sigma_f2 - quad), far), floor)  # eq. 23, floors
 
 
-# Codes of ``augmentation_torque``'s entries (``core.augmentation.TORQUE_EFFECTS``).
-A_COULOMB, A_VISCOUS, A_STRIBECK, A_DRIVE_GAIN, A_OFFSET, A_RIPPLE = range(6)
-
-
-@_jit
+@jit
 def augmentation_torque(q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray, codes: np.ndarray, joints: np.ndarray,
                         params: np.ndarray, theta: np.ndarray, out: np.ndarray) -> None:
     """τ_aug(q, q̇, τ_m) (n,) N·m into ``out``: per entry m, joint ``joints[m]``, the effect ``codes[m]``'s columns
@@ -70,16 +68,16 @@ def augmentation_torque(q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray, codes:
     out[:] = 0.0
     for m in range(codes.shape[0]):
         j, code, a = joints[m], codes[m], theta[m, 0]
-        if code == A_COULOMB:
+        if code == Effect.COULOMB_FRICTION:
             out[j] += np.tanh(qd[j] / params[m, 0]) * a
-        elif code == A_VISCOUS:
+        elif code == Effect.VISCOUS_FRICTION:
             out[j] += qd[j] * a
-        elif code == A_STRIBECK:
+        elif code == Effect.STRIBECK_FRICTION:
             v = qd[j] / params[m, 1]
             out[j] += np.exp(-(v * v)) * np.tanh(qd[j] / params[m, 0]) * a
-        elif code == A_DRIVE_GAIN:
+        elif code == Effect.DRIVE_GAIN:
             out[j] += tau_m[j] * a
-        elif code == A_OFFSET:
+        elif code == Effect.TORQUE_OFFSET:
             out[j] += -1.0 * a
         else:
             k = params[m, 1]

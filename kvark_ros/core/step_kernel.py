@@ -30,9 +30,15 @@ Arguments, not globals. Every array numba receives from Python costs ~1 k instru
 the constants come packed (``split_state``, ``split_constants``). And numba's cache (``cache=True``: ``__pycache__``
 next to this file, or ``NUMBA_CACHE_DIR``) is keyed on this file's content only: a function inlined from another
 module, or another module's constant frozen into the machine code, would stay stale in the cache when only that
-module changed. So all compiled code lives in this file and takes every number from its arguments or from this
-file's own constants (``test/test_kernel.py`` checks it). Arrays other than C-contiguous float64 ones (a strided
-view, float32) compile one more specialization, once.
+module changed. So all compiled code lives in this file and takes every number from its arguments, from this
+file's own constants or from the layouts this file pins (below; ``test/test_kernel.py`` checks both). Arrays other
+than C-contiguous float64 ones (a strided view, float32) compile one more specialization, once.
+
+Layouts. The packed arrays' entries are declared once, in ``core.kernel_layouts`` (``Const``, ``Param``, ``Option``,
+``Vec``, ``Counter``, ``Row``, ``EstimatorParam``; bits ``Flag``, ``Outcome``); numba compiles a member as its
+integer constant, so ``vec[Vec.TAU]`` costs what ``vec[1]`` does. That file's content is pinned here by
+``LAYOUTS_DIGEST``: numba's cache sees only this file, so a change there must change the digest here (the tests
+check it), which recompiles the kernels.
 """
 from __future__ import annotations
 
@@ -42,41 +48,14 @@ from typing import Callable
 import numba
 import numpy as np
 
-# Rows of the per-joint constants (consts, (CONST_ROWS, n)).
-C_R, C_R_MIN, C_Q_P, C_Q_TAU, C_RESIDUAL_VAR, C_NEG_HALF_INV_LS2, C_SIGMA_F2, C_VAR_SCALE = range(8)
-CONST_ROWS = 8
-# Entries of the float parameters (params) and of the integer options (options): the filter's settings and the
-# numbers of other modules (WINDOW_MAX_RATIO, NIS_SCALE_BOUNDS, VARIANCE_FLOOR, WINDOW_SNAPSHOTS), which reach the
-# kernels as arguments (module docstring).
-(P_EWMA_RATE, P_NIS_RATE, P_FORGET, P_PRIOR_DOF, P_THRESHOLD, P_RHO, P_MAX_RATIO, P_NIS_LOW, P_NIS_HIGH,
- P_VARIANCE_FLOOR) = range(10)
-PARAMS = 10
-(O_HETEROSCEDASTIC, O_EWMA, O_NIS, O_WINDOW, O_ONSET, O_KMP, O_STRIDE, O_SUPPORT, O_ONSETS, O_VB_IW, O_SMOOTHED,
- O_ITERATIONS, O_SNAPSHOTS) = range(13)
-OPTIONS = 13
-# Rows of the per-joint state (vec, (VEC_ROWS, n)): the filter's, the per-sample VB's λ and Υ (paper, smoothed), the
-# window's q̂ and Υ, the residual's μ_*, σ²_*.
-V_P_HAT, V_TAU, V_A, V_B, V_C, V_R, V_NIS, V_SIGMA_D, V_VB_DOF, V_VB_SCALE, V_Q, V_SCALE, V_MEAN, V_VAR = range(14)
-VEC_ROWS = 14
-# Entries of the integer state (ints): the window's sample count, the onset ring's slot, the onset alarms.
-I_COUNT, I_SLOT, I_ALARMS = range(3)
-INTS = 3
-# estimate_step: bits of ``flags`` (what to run this call, and the estimator's settings).
-MOMENTUM, FILTER, POST, TARED, STICTION, SCALED, END_EFFECTOR, AUGMENTED = (1 << i for i in range(8))
-# Bits of the returned code: a direction with σ_i < δ (weak_wrench), a non-finite estimate, J Jᵀ + δ² I not positive
-# definite (δ = 0 at a singular pose: the reference refuses it).
-WEAK, DIVERGED, SINGULAR = 1, 2, 4
-# Rows of the estimator's per-joint buffer (rows, (ROWS, n)): p_{k−1}, u_{k−1}, p_k, u_k, τ_aug, F_s, the interval
-# factors c (docs/method.md §4.13).
-R_P_PREV, R_U_PREV, R_P, R_U, R_AUG, R_BAND, R_SCALE = range(7)
-ROWS = 7
-# Entries of the estimator's float parameters: wrench.damping δ, wrench.prior_force, wrench.prior_moment,
-# filter.stiction_velocity v_s, the collision's z.
-E_DAMPING, E_PRIOR_FORCE, E_PRIOR_MOMENT, E_STICTION_VELOCITY, E_Z = range(5)
-E_PARAMS = 5
+from kvark_ros.core.kernel_layouts import (CONST_ROWS, PARAMS, VEC_ROWS, Const, Counter, EstimatorParam, Flag, Option,
+                                          Outcome, Param, Row, Vec)
+
+# sha256 of core/kernel_layouts.py (module docstring): update it with the file, so numba recompiles the kernels.
+LAYOUTS_DIGEST = "5ff0cdce7b0c1da361f4a81a603705dd7dc37eabdae4ac00528c943ec4b7e419"
 
 
-def _jit(function: Callable) -> Callable:
+def jit(function: Callable) -> Callable:
     """``numba.njit`` with numpy's IEEE semantics (inf/nan, no ZeroDivisionError) and numba's on-disk cache.
 
     Where no cache directory is writable (no ``NUMBA_CACHE_DIR``, a read-only install, no writable home) numba
@@ -87,7 +66,7 @@ def _jit(function: Callable) -> Callable:
         return numba.njit(error_model="numpy")(function)
 
 
-@_jit
+@jit
 def split_state(state: np.ndarray, n: int, snapshots: int,
                 onsets: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Views of the packed filter state: vec (VEC_ROWS, n); the window's S = ``snapshots`` snapshots z, zz, pz, tz
@@ -105,7 +84,7 @@ def state_size(n: int, snapshots: int, onsets: int) -> int:
     return VEC_ROWS * n + 4 * n * (snapshots + onsets) + 1 + snapshots
 
 
-@_jit
+@jit
 def split_constants(constants: np.ndarray, n: int,
                     support: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Views of the packed constants: consts (CONST_ROWS, n), params (PARAMS,), the KMP's support velocities
@@ -118,7 +97,7 @@ def split_constants(constants: np.ndarray, n: int,
             constants[end_support:end_support + n * support * (support + 1)].reshape((n, support, support + 1)))
 
 
-@_jit
+@jit
 def kmp_predict(qd: np.ndarray, support: np.ndarray, weights_t: np.ndarray, consts: np.ndarray, floor: float,
                 mean: np.ndarray, var: np.ndarray) -> None:
     """``KMPResidualModel.predict`` of a q̇-only model, into ``mean`` (n,) N·m and ``var`` (n,) N²·m².
@@ -135,50 +114,51 @@ def kmp_predict(qd: np.ndarray, support: np.ndarray, weights_t: np.ndarray, cons
         nearest = 0.0
         for i in range(n_support):
             e = qd[j] - support[j, i]
-            e = np.exp(e * e * consts[C_NEG_HALF_INV_LS2, j])          # k_*/σ_f², eq. 21
+            e = np.exp(e * e * consts[Const.NEG_HALF_INV_LS2, j])      # k_*/σ_f², eq. 21
             nearest = max(nearest, e)
             for r in range(rows):                                      # W e, one row per r (vectorises over r)
                 w[r] += weights_t[j, i, r] * e
         quad = 0.0
         for r in range(1, rows):
             quad += w[r] * w[r]
-        sigma_f2 = consts[C_SIGMA_F2, j]
+        sigma_f2 = consts[Const.SIGMA_F2, j]
         mean[j] = w[0]                                                 # eq. 22
-        v = consts[C_VAR_SCALE, j] * (sigma_f2 - quad)                 # eq. 23
+        v = consts[Const.VAR_SCALE, j] * (sigma_f2 - quad)             # eq. 23
         v = max(v, sigma_f2 * (1.0 - nearest * nearest))               # far-field floor (§3.6)
         var[j] = max(v, floor)
 
 
-@_jit
+@jit
 def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, state: np.ndarray, ints: np.ndarray,
                constants: np.ndarray, options: np.ndarray) -> None:
     """One sample of ``KVARKMomentumFilter.step``; updates the packed state in place.
 
     Inputs: ``dt`` s; ``qd`` (n,) rad/s; ``p``, ``u_prev`` (n,) N·m·s, N·m. ``state``, ``ints``: the packed state
     (``split_state``: p̂, τ̂, P = [[a, b], [b, c]], R_k, the NIS mean, Σ_d, the window's q̂, Υ and snapshots, the
-    residual model's μ_*, σ²_* (written here when ``options[O_KMP]``, else read), the onset detector's sums, the
-    counters); ``constants``, ``options``: ``split_constants`` and the O_* flags.
+    residual model's μ_*, σ²_* (written here when ``options[Option.KMP]``, else read), the onset detector's sums, the
+    counters, ``Counter``); ``constants``, ``options``: ``split_constants`` (``Const``, ``Param``) and the ``Option``
+    entries.
     """
     n = qd.shape[0]
-    vec, snap, glr, scal = split_state(state, n, options[O_SNAPSHOTS], options[O_ONSETS])
-    consts, params, support, weights_t = split_constants(constants, n, options[O_SUPPORT])
-    p_hat, tau, a, b, c = vec[V_P_HAT], vec[V_TAU], vec[V_A], vec[V_B], vec[V_C]
-    r_adaptive, nis_mean, sigma_d, q, scale = vec[V_R], vec[V_NIS], vec[V_SIGMA_D], vec[V_Q], vec[V_SCALE]
-    vb_dof, vb_scale = vec[V_VB_DOF], vec[V_VB_SCALE]
-    mean, var = vec[V_MEAN], vec[V_VAR]
+    vec, snap, glr, scal = split_state(state, n, options[Option.SNAPSHOTS], options[Option.ONSETS])
+    consts, params, support, weights_t = split_constants(constants, n, options[Option.SUPPORT])
+    p_hat, tau, a, b, c = vec[Vec.P_HAT], vec[Vec.TAU], vec[Vec.A], vec[Vec.B], vec[Vec.C]
+    r_adaptive, nis_mean, sigma_d, q, scale = vec[Vec.R], vec[Vec.NIS], vec[Vec.SIGMA_D], vec[Vec.Q], vec[Vec.SCALE]
+    vb_dof, vb_scale = vec[Vec.VB_DOF], vec[Vec.VB_SCALE]
+    mean, var = vec[Vec.MEAN], vec[Vec.VAR]
     z, zz, pz, tz = snap[0], snap[1], snap[2], snap[3]
     ep, et, d, info = glr[0], glr[1], glr[2], glr[3]
     age, dof = scal[1:], scal[0]
-    count, slot, alarms = ints[I_COUNT], ints[I_SLOT], ints[I_ALARMS]
-    if options[O_KMP]:
-        kmp_predict(qd, support, weights_t, consts, params[P_VARIANCE_FLOOR], mean, var)   # eqs. 21-23
-    heteroscedastic, ewma, nis = options[O_HETEROSCEDASTIC], options[O_EWMA], options[O_NIS]
-    window, onset, stride = options[O_WINDOW], options[O_ONSET], options[O_STRIDE]
-    vb_iw, smoothed = options[O_VB_IW], options[O_SMOOTHED]
-    passes, forget_vb = options[O_ITERATIONS] if vb_iw else 1, params[P_RHO]
+    count, slot, alarms = ints[Counter.COUNT], ints[Counter.SLOT], ints[Counter.ALARMS]
+    if options[Option.KMP]:
+        kmp_predict(qd, support, weights_t, consts, params[Param.VARIANCE_FLOOR], mean, var)  # eqs. 21-23
+    heteroscedastic, ewma, nis = options[Option.HETEROSCEDASTIC], options[Option.EWMA], options[Option.NIS]
+    window, onset, stride = options[Option.WINDOW], options[Option.ONSET], options[Option.STRIDE]
+    vb_iw, smoothed = options[Option.VB_IW], options[Option.SMOOTHED]
+    passes, forget_vb = options[Option.ITERATIONS] if vb_iw else 1, params[Param.VB_FORGETTING]
     hh = dt * dt
     snapshots = z.shape[1]
-    column, closing, full, forget = 0, False, False, params[P_FORGET]
+    column, closing, full, forget = 0, False, False, params[Param.FORGET]
     if window:
         count += 1
         for i in range(snapshots):
@@ -189,18 +169,18 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
             full = count >= stride * snapshots                         # snapshot `column` spans a whole window
             if full:
                 dof = forget * dof + 1.0 / snapshots                   # eq. 37
-    threshold = params[P_THRESHOLD]
+    threshold = params[Param.THRESHOLD]
     gate = False
     dof_pred = scale_pred = 0.0
     for j in range(n):
         tau_pred = tau[j]                                              # eq. 41
         p_pred = p_hat[j] + dt * (u_prev[j] - mean[j] + tau_pred)     # eq. 28 as the momentum model
-        residual_var = var[j] if heteroscedastic else consts[C_RESIDUAL_VAR, j]
+        residual_var = var[j] if heteroscedastic else consts[Const.RESIDUAL_VAR, j]
         bj, hc = b[j], dt * c[j]                                       # F P Fᵀ, F = [[1, h], [0, 1]]
-        a_f = a[j] + dt * (bj + bj + hc) + consts[C_Q_P, j] * dt + hh * residual_var   # + w_p (eq. 30)
+        a_f = a[j] + dt * (bj + bj + hc) + consts[Const.Q_P, j] * dt + hh * residual_var  # + w_p (eq. 30)
         b_f, c_f = bj + hc, c[j]
         nu = p[j] - p_pred                                             # innovation
-        R = r_adaptive[j] if ewma else consts[C_R, j]
+        R = r_adaptive[j] if ewma else consts[Const.R, j]
         if window:
             for i in range(snapshots):
                 pz[j, i] = pz[j, i] + dt * tz[j, i]                    # Cov(p⁻, z) = (F P)_pz
@@ -208,7 +188,7 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
         elif vb_iw:                                                    # the IW prediction with forgetting (§4.4)
             sd, dof_pred, scale_pred = sigma_d[j], forget_vb * (vb_dof[j] - 2.0) + 2.0, forget_vb * vb_scale[j]
         else:
-            sd = consts[C_Q_TAU, j] * dt                               # Σ_d from training (eq. 32)
+            sd = consts[Const.Q_TAU, j] * dt                           # Σ_d from training (eq. 32)
             if nis:
                 sd = sd * nis_mean[j]                                  # A4: Σ_d = α Σ_d0
         for _ in range(passes):                                        # M VB passes re-read eq. 42 (§4.4)
@@ -244,13 +224,13 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
                 tz[j, i] = tz[j, i] - k2 * pzi
                 pz[j, i] = pzi - k1 * pzi
             if closing:
-                q0 = consts[C_Q_TAU, j]
+                q0 = consts[Const.Q_TAU, j]
                 if full:
                     delta = tau[j] - z[j, column]
                     stat = (delta * delta + c[j] + zz[j, column] - 2.0 * tz[j, column]) / age[column]  # s_j
                     scale[j] = forget * scale[j] + max(stat, 0.0) / snapshots                        # eq. 38
-                    prior = params[P_PRIOR_DOF]
-                    q[j] = min((prior * q0 + scale[j]) / (prior + dof), params[P_MAX_RATIO] * q0)   # eq. 39
+                    prior = params[Param.PRIOR_DOF]
+                    q[j] = min((prior * q0 + scale[j]) / (prior + dof), params[Param.MAX_RATIO] * q0)  # eq. 39
                 z[j, column], zz[j, column] = tau[j], c[j]                 # new snapshot z_j = τ_k
                 pz[j, column], tz[j, column] = b[j], c[j]
             sigma_d[j] = q[j] * dt
@@ -265,11 +245,11 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
                 if d[j, i] * d[j, i] - threshold * info[j, i] > 0.0:
                     gate = True
         if ewma:                                                       # eq. 31 with eq. 16's correction
-            updated = r_adaptive[j] + params[P_EWMA_RATE] * (nu * nu - a_m - r_adaptive[j])
-            r_adaptive[j] = min(max(updated, consts[C_R_MIN, j]), consts[C_R, j])
+            updated = r_adaptive[j] + params[Param.EWMA_RATE] * (nu * nu - a_m - r_adaptive[j])
+            r_adaptive[j] = min(max(updated, consts[Const.R_MIN, j]), consts[Const.R, j])
         if nis:                                                        # A4
-            updated = nis_mean[j] + params[P_NIS_RATE] * (nu * nu / s - nis_mean[j])
-            nis_mean[j] = min(max(updated, params[P_NIS_LOW]), params[P_NIS_HIGH])
+            updated = nis_mean[j] + params[Param.NIS_RATE] * (nu * nu / s - nis_mean[j])
+            nis_mean[j] = min(max(updated, params[Param.NIS_LOW]), params[Param.NIS_HIGH])
     if window and closing:
         age[column] = 0.0
     if onset:
@@ -279,10 +259,10 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
                 ep[j, i] = ep[j, i] + dt * et[j, i]                    # e⁻_k+1 = F e⁺_k
             ep[j, slot], et[j, slot], d[j, slot], info[j, slot] = 0.0, 1.0, 0.0, 0.0   # newest onset
         slot = (slot + 1) % ep.shape[1]
-    ints[I_COUNT], ints[I_SLOT], ints[I_ALARMS], scal[0] = count, slot, alarms, dof
+    ints[Counter.COUNT], ints[Counter.SLOT], ints[Counter.ALARMS], scal[0] = count, slot, alarms, dof
 
 
-@_jit
+@jit
 def _accept_jumps(gate: bool, threshold: float, p_hat: np.ndarray, tau: np.ndarray, a: np.ndarray, b: np.ndarray,
                   c: np.ndarray, ep: np.ndarray, et: np.ndarray, d: np.ndarray, info: np.ndarray) -> int:
     """Accept the jumps whose ℓ_θ = d²/C exceeds the threshold (once any d² > threshold C) and correct the
@@ -310,7 +290,7 @@ def _accept_jumps(gate: bool, threshold: float, p_hat: np.ndarray, tau: np.ndarr
     return accepted
 
 
-@_jit
+@jit
 def finite_sample(stamp: float, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> bool:
     """Whether stamp + q·q + q̇·q̇ + τ_m·τ_m is finite: no NaN or Inf, no |x| > ~1e154 (the reference's test)."""
     total = stamp
@@ -319,22 +299,22 @@ def finite_sample(stamp: float, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray
     return math.isfinite(total)
 
 
-@_jit
+@jit
 def _momentum(qd: np.ndarray, tau_m: np.ndarray, gravity: np.ndarray, rnea: np.ndarray, coriolis: np.ndarray,
               rows: np.ndarray, augmented: bool) -> None:
-    """p and u of one sample into rows R_P, R_U (docs/method.md §2.1)."""
+    """p and u of one sample into rows Row.P, Row.U (docs/method.md §2.1)."""
     n = qd.shape[0]
     for j in range(n):
-        rows[R_P, j] = rnea[j] - gravity[j]                            # eq. 5: rnea(q, 0, q̇) − g = M q̇
+        rows[Row.P, j] = rnea[j] - gravity[j]                          # eq. 5: rnea(q, 0, q̇) − g = M q̇
         ctq = 0.0
         for i in range(n):
             ctq += coriolis[i, j] * qd[i]                              # (Cᵀ q̇)_j
-        rows[R_U, j] = ctq - gravity[j] + tau_m[j]                     # eq. 7
+        rows[Row.U, j] = ctq - gravity[j] + tau_m[j]                   # eq. 7
         if augmented:
-            rows[R_U, j] -= rows[R_AUG, j]                             # τ_m − τ_aug (§2.2)
+            rows[Row.U, j] -= rows[Row.AUG, j]                         # τ_m − τ_aug (§2.2)
 
 
-@_jit
+@jit
 def _cholesky(a: np.ndarray, factor: np.ndarray) -> bool:
     """The lower Cholesky factor of the symmetric (m, m) ``a`` into ``factor``; False if ``a`` is not positive
     definite (a pivot ≤ 0 or NaN), as LAPACK's dpotrf."""
@@ -357,7 +337,7 @@ def _cholesky(a: np.ndarray, factor: np.ndarray) -> bool:
     return True
 
 
-@_jit
+@jit
 def _gram(jac: np.ndarray) -> np.ndarray:
     """J Jᵀ (6, 6) of J (6, n)."""
     gram = np.empty((6, 6))
@@ -370,7 +350,7 @@ def _gram(jac: np.ndarray) -> np.ndarray:
     return gram
 
 
-@_jit
+@jit
 def _pseudo_inverse(jac: np.ndarray, gram: np.ndarray, delta2: float, pinv: np.ndarray) -> bool:
     """J⁺ = (J Jᵀ + δ² I)⁻¹ J (6, n) into ``pinv`` (v2 eq. 39) from ``gram`` = J Jᵀ, through a Cholesky factor;
     False when J Jᵀ + δ² I is not positive definite (δ = 0 at a singular pose)."""
@@ -394,7 +374,7 @@ def _pseudo_inverse(jac: np.ndarray, gram: np.ndarray, delta2: float, pinv: np.n
     return True
 
 
-@_jit
+@jit
 def _moments(pinv: np.ndarray, tau: np.ndarray, variance: np.ndarray, wrench: np.ndarray,
              wrench_cov: np.ndarray) -> None:
     """F = J⁺ τ̂ and Σ_F = J⁺ diag(variance) J⁺ᵀ (§1.4; P is diagonal, the module docstring), symmetric."""
@@ -411,27 +391,27 @@ def _moments(pinv: np.ndarray, tau: np.ndarray, variance: np.ndarray, wrench: np
             wrench_cov[a, b] = wrench_cov[b, a] = value
 
 
-@_jit
+@jit
 def _wrench(jac: np.ndarray, tau: np.ndarray, variance: np.ndarray, params: np.ndarray, rotation: np.ndarray,
             end_effector: bool, wrench: np.ndarray, wrench_cov: np.ndarray) -> int:
     """F = J⁺ τ̂ and Σ_F = J⁺ diag(variance) J⁺ᵀ (docs/method.md §1.4, v2 eq. 39) in base axes, or in the ee axes
-    (``rotation`` R: F_ee = diag(Rᵀ, Rᵀ) F); returns WEAK when some σ_i(J) < δ (§1.4.1: ``weak_wrench`` then
-    follows), SINGULAR when J⁺ does not exist, else 0."""
-    damping = params[E_DAMPING]
+    (``rotation`` R: F_ee = diag(Rᵀ, Rᵀ) F); returns Outcome.WEAK when some σ_i(J) < δ (§1.4.1: ``weak_wrench``
+    then follows), Outcome.SINGULAR when J⁺ does not exist, else 0."""
+    damping = params[EstimatorParam.DAMPING]
     delta2 = damping * damping
     gram, pinv = _gram(jac), np.empty((6, jac.shape[1]))
     if not _pseudo_inverse(jac, gram, delta2, pinv):
-        return SINGULAR
+        return Outcome.SINGULAR
     _moments(pinv, tau, variance, wrench, wrench_cov)
     for a in range(6):
         gram[a, a] -= delta2
     weak = damping != 0.0 and not _cholesky(gram, np.empty((6, 6)))   # σ_min(J) ≥ δ ⇔ J Jᵀ − δ² I ≻ 0
     if end_effector:
         _rotate(rotation, wrench, wrench_cov)
-    return WEAK if weak else 0
+    return Outcome.WEAK if weak else 0
 
 
-@_jit
+@jit
 def weak_wrench(jac: np.ndarray, tau: np.ndarray, tau_cov: np.ndarray, params: np.ndarray, rotation: np.ndarray,
                 end_effector: bool, wrench: np.ndarray, wrench_cov: np.ndarray,
                 directions: np.ndarray) -> tuple[int, bool]:
@@ -443,7 +423,7 @@ def weak_wrench(jac: np.ndarray, tau: np.ndarray, tau_cov: np.ndarray, params: n
     axes, or in the ee axes as ``_wrench``. Returns (k, whether τ̂, Cov τ̂ and Σ_F are finite).
     """
     n = jac.shape[1]
-    damping = params[E_DAMPING]
+    damping = params[EstimatorParam.DAMPING]
     delta2 = damping * damping
     variance, pinv = np.empty(n), np.empty((6, n))
     for j in range(n):
@@ -463,7 +443,7 @@ def weak_wrench(jac: np.ndarray, tau: np.ndarray, tau_cov: np.ndarray, params: n
             for i in range(k):
                 bias[a, b] += directions[a, i] * shrink[i] * directions[b, i]
     prior = np.empty(6)
-    prior[:3], prior[3:] = params[E_PRIOR_FORCE] ** 2, params[E_PRIOR_MOMENT] ** 2
+    prior[:3], prior[3:] = params[EstimatorParam.PRIOR_FORCE] ** 2, params[EstimatorParam.PRIOR_MOMENT] ** 2
     for a in range(6):                                                 # + B Σ_prior Bᵀ (§1.4.1)
         for b in range(6):
             value = 0.0
@@ -491,7 +471,7 @@ def weak_wrench(jac: np.ndarray, tau: np.ndarray, tau_cov: np.ndarray, params: n
     return k, math.isfinite(total)
 
 
-@_jit
+@jit
 def _rotate(rotation: np.ndarray, wrench: np.ndarray, wrench_cov: np.ndarray) -> None:
     """F ← B F and Σ ← B Σ Bᵀ with B = diag(Rᵀ, Rᵀ): base axes to the ee axes (``Estimate.wrench_in``)."""
     turned, work = np.zeros(6), np.empty((6, 6))
@@ -516,7 +496,7 @@ def _rotate(rotation: np.ndarray, wrench: np.ndarray, wrench_cov: np.ndarray) ->
             wrench_cov[a, b] = wrench_cov[b, a] = value
 
 
-@_jit
+@jit
 def estimate_step(flags: int, dt: float, qd: np.ndarray, tau_m: np.ndarray, gravity: np.ndarray, rnea: np.ndarray,
                   coriolis: np.ndarray, jac: np.ndarray, rotation: np.ndarray, rows: np.ndarray, offset: np.ndarray,
                   params: np.ndarray, state: np.ndarray, ints: np.ndarray, constants: np.ndarray,
@@ -524,40 +504,41 @@ def estimate_step(flags: int, dt: float, qd: np.ndarray, tau_m: np.ndarray, grav
                   wrench_cov: np.ndarray) -> tuple[int, float, float]:
     """One ``Estimator.step`` after its input checks and pinocchio passes (module docstring).
 
-    ``flags``: MOMENTUM (p, u from ``gravity`` g, ``rnea`` = M q̇ + g and ``coriolis`` C, kept in ``rows`` for the
-    next sample), FILTER (``kvark_step`` on the packed filter state ``state``, ``ints``, ``constants``,
-    ``options``), POST (the rest, into ``tau``, ``tau_cov``, ``wrench``, ``wrench_cov``), and the settings TARED
-    (subtract ``offset``), STICTION (widen by the band in ``rows[R_BAND]``), SCALED (report P scaled by
-    ``rows[R_SCALE]``), END_EFFECTOR (wrench in the axes of ``rotation``), AUGMENTED (subtract ``rows[R_AUG]`` =
-    τ_aug). ``jac``: J (6, n) in base axes; ``params``: δ, the wrench prior, v_s, z. Returns (code: WEAK |
-    DIVERGED | SINGULAR bits, the contact statistic (NaN: S not positive definite), the collision excess (NaN: not
-    finite)); with WEAK or SINGULAR, F and Σ_F are not final.
+    ``flags``: ``Flag`` bits, MOMENTUM (p, u from ``gravity`` g, ``rnea`` = M q̇ + g and ``coriolis`` C, kept in
+    ``rows`` for the next sample), FILTER (``kvark_step`` on the packed filter state ``state``, ``ints``,
+    ``constants``, ``options``), POST (the rest, into ``tau``, ``tau_cov``, ``wrench``, ``wrench_cov``), and the
+    settings TARED (subtract ``offset``), STICTION (widen by the band in ``rows[Row.BAND]``), SCALED (report P scaled
+    by ``rows[Row.SCALE]``), END_EFFECTOR (wrench in the axes of ``rotation``), AUGMENTED (subtract
+    ``rows[Row.AUG]`` = τ_aug). ``jac``: J (6, n) in base axes; ``params``: δ, the wrench prior, v_s, z
+    (``EstimatorParam``). Returns (code: ``Outcome`` bits WEAK | DIVERGED | SINGULAR, the contact statistic (NaN: S
+    not positive definite), the collision excess (NaN: not finite)); with WEAK or SINGULAR, F and Σ_F are not final.
     """
     n = qd.shape[0]
-    if flags & MOMENTUM:
-        _momentum(qd, tau_m, gravity, rnea, coriolis, rows, flags & AUGMENTED != 0)
-    if flags & FILTER:
-        kvark_step(dt, qd, rows[R_P], rows[R_U_PREV], state, ints, constants, options)
-    if flags & MOMENTUM:
-        rows[R_P_PREV, :] = rows[R_P]
-        rows[R_U_PREV, :] = rows[R_U]
-    if not flags & POST:
+    if flags & Flag.MOMENTUM:
+        _momentum(qd, tau_m, gravity, rnea, coriolis, rows, flags & Flag.AUGMENTED != 0)
+    if flags & Flag.FILTER:
+        kvark_step(dt, qd, rows[Row.P], rows[Row.U_PREV], state, ints, constants, options)
+    if flags & Flag.MOMENTUM:
+        rows[Row.P_PREV, :] = rows[Row.P]
+        rows[Row.U_PREV, :] = rows[Row.U]
+    if not flags & Flag.POST:
         return 0, np.nan, np.nan
-    vec = split_state(state, n, options[O_SNAPSHOTS], options[O_ONSETS])[0]
-    filtered, c, residual_var = vec[V_TAU], vec[V_C], vec[V_VAR]
-    band, factors, velocity, z = rows[R_BAND], rows[R_SCALE], params[E_STICTION_VELOCITY], params[E_Z]
+    vec = split_state(state, n, options[Option.SNAPSHOTS], options[Option.ONSETS])[0]
+    filtered, c, residual_var = vec[Vec.TAU], vec[Vec.C], vec[Vec.VAR]
+    band, factors = rows[Row.BAND], rows[Row.SCALE]
+    velocity, z = params[EstimatorParam.STICTION_VELOCITY], params[EstimatorParam.Z]
     variance = np.empty(n)
     tau_cov[:, :] = 0.0
     statistic, excess, total, definite = 0.0, -np.inf, 0.0, True
     for j in range(n):
-        tau[j] = filtered[j] - offset[j] if flags & TARED else filtered[j]         # τ̂ − offset (§4.10)
+        tau[j] = filtered[j] - offset[j] if flags & Flag.TARED else filtered[j]    # τ̂ − offset (§4.10)
         sticking, widened = 0.0, c[j]                                           # P = diag(c) (§4.2)
-        if flags & STICTION:
+        if flags & Flag.STICTION:
             ratio = qd[j] / velocity
             sticking = band[j] * band[j] / 3.0 * np.exp(-(ratio * ratio))       # σ²_s = F_s²/3 e^{−(q̇/v_s)²} (§4.11)
             widened += sticking
         variance[j] = widened                                                   # reported Cov τ̂, Σ_F's source
-        if flags & SCALED:
+        if flags & Flag.SCALED:
             variance[j] = c[j] * (factors[j] * factors[j]) + sticking           # diag(c) P diag(c) + σ²_s (§4.13)
         tau_cov[j, j] = variance[j]
         s_jj = widened + residual_var[j]                                        # S = P + diag σ²_r (§7.2)
@@ -566,18 +547,18 @@ def estimate_step(flags: int, dt: float, qd: np.ndarray, tau_m: np.ndarray, grav
             statistic += scaled * scaled                                        # d² = τ̂ᵀ S⁻¹ τ̂ (§7.1)
         else:
             definite = False
-        unwidened = s_jj - sticking if flags & STICTION else s_jj               # the collision keeps σ unwidened
+        unwidened = s_jj - sticking if flags & Flag.STICTION else s_jj          # the collision keeps σ unwidened
         if unwidened < 0.0:                                                     # max(·, 0); a NaN stays NaN
             unwidened = 0.0
         joint = abs(tau[j]) - z * math.sqrt(unwidened)                          # |τ̂_j| − z σ_j (§4.10)
         if math.isnan(joint) or joint > excess:                                 # a NaN stays: the flag holds
             excess = joint
         total += tau[j] + variance[j]
-    code = _wrench(jac, tau, variance, params, rotation, flags & END_EFFECTOR != 0, wrench, wrench_cov)
+    code = _wrench(jac, tau, variance, params, rotation, flags & Flag.END_EFFECTOR != 0, wrench, wrench_cov)
     for a in range(6):
         for b in range(6):
             total += wrench_cov[a, b]
-    code |= 0 if math.isfinite(total) else DIVERGED
+    code |= 0 if math.isfinite(total) else Outcome.DIVERGED
     if not (definite and math.isfinite(statistic)):
         statistic = np.nan
     return code, statistic, excess

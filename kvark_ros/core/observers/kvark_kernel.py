@@ -20,7 +20,10 @@ calls it (numba's cache sees one file). It takes the state as two buffers (``Ker
 int64) and the constants as one float64 and one int64 array, because every array numba receives from Python costs
 about 1 k instructions to unbox (issue 16 measured 30 k of the filter's 100 k on its 30 arguments). The
 reference's state attributes (``p_hat``, ``tau``, …, the window's ``z``, …, the detector's ``ep``, …) are views of
-those buffers (``_Packed``): the reference's ``reset``, ``state`` and ``load_state`` run unchanged on them.
+those buffers (``_Packed``): the reference's ``reset``, ``state`` and ``load_state`` run unchanged on them. The
+constants are written by name from ``step_kernel``'s layouts: the ``Const`` rows, every ``Param`` entry from this
+filter's attribute of its lower-case name or from ``declared_params``, the ``Option`` entries; the residual model's
+factors come from ``KMPResidualModel.kernel_arrays``.
 
 Compilation: the observer steps once on dummy data at construction (from numba's cache after the first time, see
 ``step_kernel``), so the first sample does not wait for the compiler.
@@ -34,27 +37,25 @@ from kvark_ros.core.model_kernels import kmp_predict_pose
 from kvark_ros.core.observers.base import DEFAULT_SAMPLE_PERIOD, FilterTuning, PerSample, ResidualPredictor
 from kvark_ros.core.observers.kvark_filter import NIS_SCALE_BOUNDS
 from kvark_ros.core.observers.kvark_momentum import R_FLOOR, KVARKMomentumFilter
-from kvark_ros.core.observers.momentum_observers import MomentumNoise
+from kvark_ros.core.observers.momentum_noise import MomentumNoise
 from kvark_ros.core.observers.onset import OnsetDetector
 from kvark_ros.core.observers.window_vb import WINDOW_MAX_RATIO, WINDOW_SNAPSHOTS, WindowVB
 from kvark_ros.core.residual.common import VARIANCE_FLOOR
 from kvark_ros.core.residual.kmp import KMPResidualModel
-from kvark_ros.core.step_kernel import (C_NEG_HALF_INV_LS2, C_Q_P, C_Q_TAU, C_R, C_R_MIN, C_RESIDUAL_VAR,
-                                        C_SIGMA_F2, C_VAR_SCALE, CONST_ROWS, I_ALARMS, I_COUNT, I_SLOT, INTS,
-                                        P_EWMA_RATE, P_FORGET, P_MAX_RATIO, P_NIS_HIGH, P_NIS_LOW, P_NIS_RATE,
-                                        P_PRIOR_DOF, P_RHO, P_THRESHOLD, P_VARIANCE_FLOOR, PARAMS, V_A, V_B, V_C,
-                                        V_MEAN, V_NIS, V_P_HAT, V_Q, V_R, V_SCALE, V_SIGMA_D, V_TAU, V_VAR,
-                                        V_VB_DOF, V_VB_SCALE, kvark_step, split_constants, split_state, state_size)
+from kvark_ros.core.kernel_layouts import CONST_ROWS, INTS, PARAMS, Const, Counter, Option, Param, Pose, Vec, pack
+from kvark_ros.core.step_kernel import kvark_step, split_constants, split_state, state_size
 
 
 class KernelState:
-    """The compiled filter's state: ``flat`` (float64, ``split_state``'s layout) and ``ints`` (int64: count, slot,
-    alarms), with ``vec``, ``snap``, ``glr`` and ``scal`` the views ``split_state`` gives the kernel."""
+    """The compiled filter's state: ``flat`` (float64, ``split_state``'s layout) and ``ints`` (int64, ``Counter``),
+    with ``vec``, ``snap``, ``glr`` and ``scal`` the views ``split_state`` gives the kernel and ``prediction`` the
+    rows μ_*, σ²_* of ``vec``."""
 
     def __init__(self, n: int, onsets: int) -> None:
         self.flat = np.zeros(state_size(n, WINDOW_SNAPSHOTS, onsets))
         self.ints = np.zeros(INTS, dtype=np.int64)
         self.vec, self.snap, self.glr, self.scal = split_state.py_func(self.flat, n, WINDOW_SNAPSHOTS, onsets)
+        self.prediction = self.vec[Vec.MEAN], self.vec[Vec.VAR]
 
 
 class _Packed:
@@ -66,7 +67,7 @@ class _Packed:
     """
 
     def __init__(self, part: str, index: int | slice) -> None:
-        self.part, self.index = part, index
+        self.part, self.index = part, index if isinstance(index, slice) else int(index)    # numpy's fastest index
 
     def __set_name__(self, owner: type, name: str) -> None:
         self.flag = f"_has_{name}"
@@ -86,7 +87,7 @@ class _PackedScalar:
     """A scalar state attribute of the reference (a counter, the window's dof) kept in a ``KernelState``."""
 
     def __init__(self, part: str, index: int, kind: type) -> None:
-        self.part, self.index, self.kind = part, index, kind
+        self.part, self.index, self.kind = part, int(index), kind
 
     def __get__(self, owner: object, kind: type | None = None) -> object:
         return self if owner is None else self.kind(getattr(owner.packed, self.part)[self.index])
@@ -100,8 +101,8 @@ class PackedWindowVB(WindowVB):
 
     z, zz, pz, tz = (_Packed("snap", i) for i in range(4))
     age = _Packed("scal", slice(1, None))
-    q, scale = _Packed("vec", V_Q), _Packed("vec", V_SCALE)
-    count, dof = _PackedScalar("ints", I_COUNT, int), _PackedScalar("scal", 0, float)
+    q, scale = _Packed("vec", Vec.Q), _Packed("vec", Vec.SCALE)
+    count, dof = _PackedScalar("ints", Counter.COUNT, int), _PackedScalar("scal", 0, float)
 
     def __init__(self, packed: KernelState, *args) -> None:
         self.packed = packed
@@ -112,7 +113,7 @@ class PackedOnsetDetector(OnsetDetector):
     """``OnsetDetector`` whose state lives in the compiled filter's ``KernelState``."""
 
     ep, et, d, c = (_Packed("glr", i) for i in range(4))
-    slot, alarms = _PackedScalar("ints", I_SLOT, int), _PackedScalar("ints", I_ALARMS, int)
+    slot, alarms = _PackedScalar("ints", Counter.SLOT, int), _PackedScalar("ints", Counter.ALARMS, int)
 
     def __init__(self, packed: KernelState, *args) -> None:
         self.packed = packed
@@ -127,9 +128,9 @@ class KVARKKernelFilter(KVARKMomentumFilter):
     """
 
     compiled = True     # the Estimator runs its whole step compiled around this filter (core.compiled_step)
-    p_hat, tau, a, b, c = (_Packed("vec", row) for row in (V_P_HAT, V_TAU, V_A, V_B, V_C))
-    R_adaptive, nis_mean, Sigma_d = _Packed("vec", V_R), _Packed("vec", V_NIS), _Packed("vec", V_SIGMA_D)
-    vb_dof, vb_scale = _Packed("vec", V_VB_DOF), _Packed("vec", V_VB_SCALE)
+    p_hat, tau, a, b, c = (_Packed("vec", row) for row in (Vec.P_HAT, Vec.TAU, Vec.A, Vec.B, Vec.C))
+    R_adaptive, nis_mean, Sigma_d = _Packed("vec", Vec.R), _Packed("vec", Vec.NIS), _Packed("vec", Vec.SIGMA_D)
+    vb_dof, vb_scale = _Packed("vec", Vec.VB_DOF), _Packed("vec", Vec.VB_SCALE)
 
     def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning, noise: MomentumNoise,
                  settings: FilterSettings, name: str | None = None,
@@ -140,47 +141,43 @@ class KVARKKernelFilter(KVARKMomentumFilter):
         self._has_prediction = False
         super().__init__(variant, residual, tuning, noise, settings, name=name, sample_period=sample_period)
         kmp = self._kmp_inside = isinstance(residual, KMPResidualModel) and not residual.needs
-        support = residual._s.shape[1] if kmp else 1
+        support = residual.n_support if kmp else 1
         self.constants = np.zeros(CONST_ROWS * n + PARAMS + n * support * (support + 2))
         consts, self._params, support_points, weights_t = split_constants.py_func(self.constants, n, support)
-        consts[C_R], consts[C_R_MIN] = self.R, R_FLOOR * self.R
-        consts[C_Q_P], consts[C_Q_TAU] = self.q_p, self.q_tau
-        consts[C_RESIDUAL_VAR] = tuning.residual_variance
+        consts[Const.R], consts[Const.R_MIN] = self.R, R_FLOOR * self.R
+        consts[Const.Q_P], consts[Const.Q_TAU] = self.q_p, self.q_tau
+        consts[Const.RESIDUAL_VAR] = tuning.residual_variance
         if kmp:
-            consts[C_NEG_HALF_INV_LS2] = residual._neg_half_inv_ls2[:, 0]
-            consts[C_SIGMA_F2], consts[C_VAR_SCALE] = residual._sigma_f2, residual._var_scale
-            support_points[:] = residual._s
-            weights_t[:] = np.swapaxes(residual._weights, 1, 2)
-        self._pose = self._pose_kmp(residual) if isinstance(residual, KMPResidualModel) and residual.needs else None
+            arrays = residual.kernel_arrays()
+            consts[Const.NEG_HALF_INV_LS2] = arrays.neg_half_inv_ls2
+            consts[Const.SIGMA_F2], consts[Const.VAR_SCALE] = arrays.sigma_f2, arrays.var_scale
+            support_points[:] = arrays.support
+            weights_t[:] = np.swapaxes(arrays.weights, 1, 2)
+        # kmp_predict_pose's arguments after q̇, q, g, bound once (the outputs are views of the packed state)
+        self._pose = ((*pose_arguments(residual), VARIANCE_FLOOR, *self.packed.prediction)
+                      if isinstance(residual, KMPResidualModel) and residual.needs else None)
         self._no_g = np.zeros(n)
-        window = self.window
-        stride = window.stride if window is not None else 1
-        self._params[P_FORGET] = window.forgetting ** stride if window is not None else 1.0
-        self._params[P_PRIOR_DOF] = window.prior_dof if window is not None else 1.0
-        self._params[P_THRESHOLD] = self.onset.threshold if self.onset is not None else 0.0
-        self._params[P_RHO] = self.vb_forgetting
-        self._params[P_MAX_RATIO], self._params[P_VARIANCE_FLOOR] = WINDOW_MAX_RATIO, VARIANCE_FLOOR
-        self._params[P_NIS_LOW], self._params[P_NIS_HIGH] = NIS_SCALE_BOUNDS
         self._apply_runtime(settings)
-        self._vb_iw = self.variant.vb and window is None                # the per-sample readings paper, smoothed
-        self.options = np.array([self.variant.heteroscedastic, self.variant.ewma, self.variant.nis,
-                                 window is not None, self.onset is not None, kmp, stride, support, onsets,
-                                 self._vb_iw, self.vb_smoothed, self.vb_iterations, WINDOW_SNAPSHOTS],
-                                dtype=np.int64)                 # in step_kernel's O_* order
+        window, variant = self.window, self.variant
+        self._vb_iw = variant.vb and window is None                     # the per-sample readings paper, smoothed
+        self.options = np.array(pack(Option, {
+            Option.HETEROSCEDASTIC: variant.heteroscedastic, Option.EWMA: variant.ewma, Option.NIS: variant.nis,
+            Option.WINDOW: window is not None, Option.ONSET: self.onset is not None, Option.KMP: kmp,
+            Option.STRIDE: window.stride if window is not None else 1, Option.SUPPORT: support,
+            Option.ONSETS: onsets, Option.VB_IW: self._vb_iw, Option.SMOOTHED: self.vb_smoothed,
+            Option.ITERATIONS: self.vb_iterations, Option.SNAPSHOTS: WINDOW_SNAPSHOTS}), dtype=np.int64)
         self._compile()
 
-    @staticmethod
-    def _pose_kmp(residual: KMPResidualModel) -> tuple[np.ndarray, ...]:
-        """``kmp_predict_pose``'s arrays for a KMP with second inputs: rows ``K_*``, s, s₂, Wᵀ, L_K⁻ᵀ, work space."""
-        n, n_support = residual._s.shape
-        pose = np.array([residual._neg_half_inv_ls2[:, 0], residual._neg_half_inv_ls2_z[:, 0], residual._sigma_f2,
-                         residual._var_scale, residual._takes_q, residual._takes_g, residual._two_input], dtype=float)
-        floor = (residual._floor_weights if residual._floor_weights is not None
-                 else np.zeros((n, n_support, n_support)))
-        return (pose, np.ascontiguousarray(residual._s), np.ascontiguousarray(residual._s2),
-                np.ascontiguousarray(np.swapaxes(residual._weights, 1, 2)),
-                np.ascontiguousarray(np.swapaxes(floor, 1, 2)), np.empty(n_support + 1), np.empty(n_support),
-                np.empty(n_support))
+    def declared_params(self) -> dict[Param, float]:
+        """The ``Param`` entries that are not this filter's attribute of their lower-case name (as ``ewma_rate``,
+        ``nis_rate``, ``vb_forgetting`` are): the window's and the onset detector's (neutral values without them)
+        and other modules' constants."""
+        window, onset = self.window, self.onset
+        return {Param.FORGET: window.forgetting ** window.stride if window is not None else 1.0,
+                Param.PRIOR_DOF: window.prior_dof if window is not None else 1.0,
+                Param.THRESHOLD: onset.threshold if onset is not None else 0.0,
+                Param.MAX_RATIO: WINDOW_MAX_RATIO, Param.NIS_LOW: NIS_SCALE_BOUNDS[0],
+                Param.NIS_HIGH: NIS_SCALE_BOUNDS[1], Param.VARIANCE_FLOOR: VARIANCE_FLOOR}
 
     def _make_window(self, *args) -> WindowVB:
         return PackedWindowVB(self.packed, *args)
@@ -191,19 +188,23 @@ class KVARKKernelFilter(KVARKMomentumFilter):
     @property
     def prediction(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The residual model's (μ_*, σ²_*) of the last step: views of the packed state (None before a first step)."""
-        vec = self.packed.vec
-        return (vec[V_MEAN], vec[V_VAR]) if self._has_prediction else None
+        return self.packed.prediction if self._has_prediction else None
 
     @prediction.setter
     def prediction(self, value: tuple[np.ndarray, np.ndarray] | None) -> None:
         self._has_prediction = value is not None
         if value is not None:
-            self.packed.vec[V_MEAN], self.packed.vec[V_VAR] = value
+            mean, var = self.packed.prediction
+            mean[:], var[:] = value
 
     def _apply_runtime(self, settings: FilterSettings) -> None:
+        """The reference's, then every ``Param`` entry: ``declared_params``, else this filter's attribute of the
+        entry's lower-case name."""
         super()._apply_runtime(settings)
         if hasattr(self, "_params"):                                   # the reference sets the rates before us
-            self._params[P_EWMA_RATE], self._params[P_NIS_RATE] = self.ewma_rate, self.nis_rate
+            declared = self.declared_params()
+            self._params[:] = [declared[member] if member in declared else getattr(self, member.name.lower())
+                               for member in Param]
 
     def _compile(self) -> None:
         """Compile (or load from the cache) the kernel with one step on dummy data, then start afresh."""
@@ -234,9 +235,7 @@ class KVARKKernelFilter(KVARKMomentumFilter):
                     self.Sigma_d = np.zeros(self.n)
             self._has_prediction = self._has_prediction or self._kmp_inside
         if self._pose is not None and q is not None:     # compiled too (zeros for an unused g)
-            vec = self.packed.vec
-            kmp_predict_pose(qd, q, self._no_g if g is None else g, *self._pose, VARIANCE_FLOOR, vec[V_MEAN],
-                             vec[V_VAR])
+            kmp_predict_pose(qd, q, self._no_g if g is None else g, *self._pose)
             self._has_prediction = True
         elif not self._kmp_inside:
             self.prediction = self.residual.predict(qd, q, g) if self.needs else self.residual.predict(qd)
@@ -247,3 +246,19 @@ class KVARKKernelFilter(KVARKMomentumFilter):
         self.prepare(dt, qd, p_prev, q, g)
         kvark_step(dt, qd, p, u_prev, self.packed.flat, self.packed.ints, self.constants, self.options)
         return self.tau.copy(), np.diag(self.c)
+
+
+def pose_arguments(residual: KMPResidualModel) -> tuple[np.ndarray, ...]:
+    """``kmp_predict_pose``'s arrays for a KMP with second inputs: the rows ``Pose`` (len(Pose), n), s, s₂ (n, N),
+    Wᵀ (n, N, N+1), L_K⁻ᵀ (n, N, N) and its work space (``KMPResidualModel.kernel_arrays``)."""
+    arrays = residual.kernel_arrays()
+    n, n_support = arrays.support.shape
+    pose = np.array(pack(Pose, {Pose.LS: arrays.neg_half_inv_ls2, Pose.LS_Z: arrays.neg_half_inv_ls2_z,
+                                Pose.SIGMA_F2: arrays.sigma_f2, Pose.VAR_SCALE: arrays.var_scale,
+                                Pose.TAKES_Q: arrays.takes_q, Pose.TAKES_G: arrays.takes_g,
+                                Pose.TWO_INPUT: arrays.two_input}), dtype=float)
+    floor = arrays.floor_weights if arrays.floor_weights is not None else np.zeros((n, n_support, n_support))
+    return (pose, np.ascontiguousarray(arrays.support), np.ascontiguousarray(arrays.support2),
+            np.ascontiguousarray(np.swapaxes(arrays.weights, 1, 2)),
+            np.ascontiguousarray(np.swapaxes(floor, 1, 2)), np.empty(n_support + 1), np.empty(n_support),
+            np.empty(n_support))

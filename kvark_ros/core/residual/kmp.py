@@ -24,7 +24,7 @@ evaluation and one small batched matrix-vector product.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
@@ -54,6 +54,7 @@ __all__ = [
     "INPUT_KINDS",
     "GMRReference",
     "KMPHyperparameters",
+    "KMPKernelArrays",
     "KMPResidualModel",
     "default_hyperparameters",
     "fit_gmr_reference",
@@ -129,6 +130,35 @@ class GMRReference:
             raise ResidualModelError("reference has no support points")
         if np.any(self.sigma2 <= 0.0):
             raise ResidualModelError("sigma2 must be strictly positive")
+
+
+@dataclass(frozen=True)
+class KMPKernelArrays:
+    """A model's precomputed factors for a compiled ``KMPResidualModel.predict`` (``observers.kvark_kernel``),
+    read-only views; n joints, N support points. With the unit kernel e_i = exp(neg_half_inv_ls2 (q̇ − s_i)² +
+    neg_half_inv_ls2_z (z − s2_i)²) = k_*/σ_f² (eq. 21) and w = W e: mean w_0 (eq. 22), variance
+    var_scale (sigma_f2 − ‖w_1..N‖²) (eq. 23), then the far-field floor and VARIANCE_FLOOR (``predict``).
+    """
+
+    support: np.ndarray  # s (n, N), rad/s
+    support2: np.ndarray  # s2 (n, N), the support points' second inputs, rad or N·m (0: q̇ only)
+    neg_half_inv_ls2: np.ndarray  # −1/(2ℓ²) (n,), s²/rad²
+    neg_half_inv_ls2_z: np.ndarray  # −1/(2ℓ_z²) (n,) of the second input, 1/rad² or 1/(N·m)² (0: q̇ only)
+    sigma_f2: np.ndarray  # σ_f² (n,), N²·m²
+    var_scale: np.ndarray  # N/λ₂ (n,) of eq. 23
+    takes_q: np.ndarray  # (n,) 1.0 where z_j = q_j, else 0.0
+    takes_g: np.ndarray  # (n,) 1.0 where z_j = g_j, else 0.0
+    two_input: np.ndarray  # (n,) bool: a second input, whose far-field floor is σ_f²(1 − ‖L_K⁻¹e‖²)
+    weights: np.ndarray  # W (n, N+1, N), N·m: row 0 σ_f²(K + λ₁Σ)⁻¹μ, rows 1..N σ_f² L⁻¹
+    floor_weights: np.ndarray | None  # L_K⁻¹ (n, N, N), zeros on q̇-only joints; None without a second input
+
+    def __post_init__(self) -> None:
+        for field in fields(self):
+            value = getattr(self, field.name)
+            if value is not None:
+                view = value.view()
+                view.setflags(write=False)
+                object.__setattr__(self, field.name, view)
 
 
 def default_hyperparameters(n: int, n_support: int = 30) -> KMPHyperparameters:
@@ -315,6 +345,13 @@ class KMPResidualModel:
     def n_joints(self) -> int:
         """Number of joints n."""
         return self._s.shape[0]
+
+    def kernel_arrays(self) -> KMPKernelArrays:
+        """This model's precomputed factors, for a compiled ``predict`` (``KMPKernelArrays``: read-only views)."""
+        return KMPKernelArrays(support=self._s, support2=self._s2, neg_half_inv_ls2=self._neg_half_inv_ls2[:, 0],
+                               neg_half_inv_ls2_z=self._neg_half_inv_ls2_z[:, 0], sigma_f2=self._sigma_f2,
+                               var_scale=self._var_scale, takes_q=self._takes_q, takes_g=self._takes_g,
+                               two_input=self._two_input, weights=self._weights, floor_weights=self._floor_weights)
 
     @property
     def n_support(self) -> int:

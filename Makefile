@@ -61,7 +61,7 @@ model: $(STAMP)
 ## reliability: the reliability figures: a 10^6-step soak with faults and the property tests
 reliability: $(STAMP)
 	$(KVARK) soak --steps 1000000
-	$(BIN)/python -m pytest test/test_reliability.py -q --hypothesis-show-statistics
+	$(BIN)/python -m pytest test/core/test_bad_input_properties.py -q --hypothesis-show-statistics
 
 ## benchmark: the full simulated comparison of every observer (see README, Results)
 benchmark: $(STAMP)
@@ -106,7 +106,7 @@ smoke-newest: newest-venv
 	$(NEWEST)/kvark train --config $(CONFIG) --bags $(TRAIN_BAGS) --out $(SMOKE)/model
 	$(NEWEST)/kvark replay --config $(CONFIG) --model $(SMOKE)/model --bag bags/panda_contact --no-bag \
 	  --out $(SMOKE)/contact
-	$(NEWEST)/python -m pytest -q test/test_ros_node.py test/test_offline.py test/test_residual_model.py
+	$(NEWEST)/python -m pytest -q test/ros/test_node_under_rclpy.py test/tools/test_train_and_replay.py test/core/test_kmp_residual.py
 
 ## bench: per-step latency of every observer
 bench: $(STAMP)

@@ -11,7 +11,7 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 from kvark_ros.core.config import load_config
-from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.estimation.robot_model import RobotModel
 
 ROOT = Path(__file__).resolve().parents[1]
 STAND_IN = Path(__file__).resolve().parent / "ros_stand_in"

@@ -12,7 +12,7 @@ replay --ground-truth zero`` something to judge:
   (15 cm past ``panda_link8``), small Coulomb friction in the link-side torque ``tau_J``.
 
 Two logs per robot (different seeds): the first to diagnose and train on, the second to replay.
-``python test/example_logs.py`` rewrites ``examples/``; ``test_import.py`` checks the files are these.
+``python test/example_logs.py`` rewrites ``examples/``; ``tools/test_import_robot_logs.py`` checks the files are these.
 """
 from __future__ import annotations
 
@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from kvark_ros.core.payload import Payload
-from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.estimation.payload import Payload
+from kvark_ros.core.estimation.robot_model import RobotModel
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 UR_JOINTS = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",

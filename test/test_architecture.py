@@ -59,6 +59,16 @@ def test_core_and_io_import_no_upper_layer():
     assert not offenders, "\n".join(offenders)
 
 
+def test_live_estimation_imports_nothing_of_learning():
+    """What the node loads (``core.estimation``, and the shared modules of ``core``) never imports ``core.learning``,
+    not even inside a function: learning is a layer above live estimation."""
+    live = [module for module in _imports() if module.startswith("kvark_ros.core") and not
+            module.startswith("kvark_ros.core.learning")]
+    offenders = [f"{module} imports {target}" for module in live for target in _imports()[module]
+                 if target.startswith("kvark_ros.core.learning")]
+    assert not offenders, "\n".join(offenders)
+
+
 def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
     """One cycle of the directed graph, or None."""
     state: dict[str, int] = {}
@@ -109,9 +119,10 @@ def test_the_node_loads_no_plotting_fitting_or_offline_module():
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, (stand_in, os.environ.get("PYTHONPATH"))))}
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, check=True)
     loaded = json.loads(done.stdout)
-    assert "rclpy" in loaded and "kvark_ros.core.residual" in loaded
+    assert "rclpy" in loaded and "kvark_ros.core.estimation.residual" in loaded
     offenders = [name for name in loaded if name.split(".")[0] in ("matplotlib", "sklearn")
-                 or _package(name) in ("tools", "gap", "sim") and name.startswith("kvark_ros.")]
+                 or _package(name) in ("tools", "gap", "sim") and name.startswith("kvark_ros.")
+                 or name.startswith("kvark_ros.core.learning")]
     assert not offenders, offenders
 
 

@@ -19,7 +19,7 @@ from typing import Any, Mapping, Optional
 from kvark_ros.core.config_schema import (GROUPS, KEYS, KEYS_BY_NAME, MEASUREMENTS, OBSERVER_NAMES, RENAMED_KEYS,
                                           VB_VARIANTS, WRENCH_FRAMES, Key, vb_variant_problem)
 from kvark_ros.core.files import read_yaml
-from kvark_ros.core.payload import Payload
+from kvark_ros.core.estimation.payload import Payload
 
 __all__ = ["NODE_NAME", "OBSERVER_NAMES", "WRENCH_FRAMES", "VB_VARIANTS", "MEASUREMENTS", "EXAMPLE_ROBOT_DATA_PREFIX",
            "ConfigError", "EstimatorConfig", "FilterSettings", "WrenchSettings", "InputSettings", "ContactSettings",

@@ -163,7 +163,7 @@ KEYS: tuple[Key, ...] = (
     _key("filter.measurement", "choice", "momentum", "form of the filter: p measured (momentum) or the paper's eq. 28 (difference)", choices=MEASUREMENTS),
     _key("filter.kernel", "choice", "numba", "implementation of Estimator.step with a momentum-form K-VARK filter: "
          "numba (the filter and the rest of the step as compiled kernels, equal to the reference to rounding; "
-         "core/step_kernel.py) or numpy (the reference); the difference form is numpy either way",
+         "core/estimation/step_kernel.py) or numpy (the reference); the difference form is numpy either way",
          choices=("numpy", "numba")),
     _key("filter.stiction_velocity", "number", 0.05,
          "rad/s; below it a joint counts as sticking: its interval widens to the trained static friction band "

@@ -18,9 +18,9 @@ class ObserverEntry(NamedTuple):
     help: str
 
 
-_KVARK = "kvark_ros.core.observers.kvark_family"
-_LEARNED = "kvark_ros.core.observers.learned_baselines"
-_MOMENTUM = "kvark_ros.core.observers.momentum_family"
+_KVARK = "kvark_ros.core.estimation.observers.kvark_family"
+_LEARNED = "kvark_ros.core.estimation.observers.learned_baselines"
+_MOMENTUM = "kvark_ros.core.estimation.observers.momentum_family"
 
 OBSERVERS = (
     ObserverEntry("kvark", _KVARK, "K-VARK (paper v1 Algorithm 1): KMP residual, adaptive Σ_ν, VB Σ_d"),

@@ -7,7 +7,7 @@ from typing import Sequence
 
 import numpy as np
 
-from kvark_ros.core.payload import inertia_problem
+from kvark_ros.core.estimation.payload import inertia_problem
 from kvark_ros.gap.effects import Priors, Term
 from kvark_ros.gap.fitting import Fitter
 

@@ -39,14 +39,14 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from kvark_ros.core.augmentation import load_augmentation
+from kvark_ros.core.estimation.augmentation import load_augmentation
 from kvark_ros.core.config import ConfigError, EstimatorConfig, load_config
-from kvark_ros.core.inputs import EstimatorInputs
-from kvark_ros.core.linalg import single_threaded_blas
-from kvark_ros.core.model_store import TrainedModel, save_model
-from kvark_ros.core.robot_model import RobotModel
-from kvark_ros.core.training import SAVGOL_WINDOW, smoothed_signals, train_model
-from kvark_ros.core.robot_model import flange_link_parameters
+from kvark_ros.core.estimation.inputs import EstimatorInputs
+from kvark_ros.core.estimation.linalg import single_threaded_blas
+from kvark_ros.core.estimation.model_store import TrainedModel, save_model
+from kvark_ros.core.estimation.robot_model import RobotModel
+from kvark_ros.core.learning.training import SAVGOL_WINDOW, smoothed_signals, train_model
+from kvark_ros.core.estimation.robot_model import flange_link_parameters
 from kvark_ros.gap.effects import (
     EFFECT_NAMES,
     PER_JOINT,

@@ -17,7 +17,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.estimation.robot_model import RobotModel
 
 Diagnosis = Any   # a diagnosis_report.Diagnosis (not imported: diagnosis_report imports this module)
 

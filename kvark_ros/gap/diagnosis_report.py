@@ -12,7 +12,7 @@ import numpy as np
 import yaml
 
 from kvark_ros.core.files import write_text_atomically
-from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.gap.effects import Signals, Term
 
 
@@ -86,7 +86,7 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
 
 def augmentation(diag: Diagnosis, robot: RobotModel, robot_name: str = "") -> dict:
     """The accepted effects as a plain mapping (``augmentation.yaml``); diagnosed against an augmented ``robot``, the
-    base augmentation's effects come first and the new ones add to them (``core.augmentation``), so the file is
+    base augmentation's effects come first and the new ones add to them (``core.estimation.augmentation``), so the file is
     the whole correction relative to the URDF."""
     entries = []
     if robot.augmentation is not None:

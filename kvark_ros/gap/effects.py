@@ -31,8 +31,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import pinocchio as pin
 
-from kvark_ros.core.augmentation import TANH_EPSILON, joint_columns
-from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.estimation.augmentation import TANH_EPSILON, joint_columns
+from kvark_ros.core.estimation.robot_model import RobotModel
 
 EFFECT_NAMES = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "payload",
                 "link_inertia", "drive_gain", "torque_offset", "position_ripple", "joint_offset")

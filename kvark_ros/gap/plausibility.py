@@ -18,9 +18,9 @@ from typing import Sequence
 import numpy as np
 from scipy.signal import savgol_filter
 
-from kvark_ros.core.inputs import EstimatorInputs
-from kvark_ros.core.payload import inertia_problem
-from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.estimation.inputs import EstimatorInputs
+from kvark_ros.core.estimation.payload import inertia_problem
+from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.gap.effects import Priors, Signals, Term, signals
 
 REGROUPED = 1e-6         # relative residual below which the flange mass is a combination of the previous link's
@@ -65,7 +65,7 @@ def plausibility_warnings(terms: Sequence[Term], thetas: Sequence[np.ndarray], p
 def flange_change(flange: np.ndarray, flange_map: np.ndarray, theta: np.ndarray) -> dict:
     """The payload effect θ (10,) in the flange frame as a change of the flange link (``flange``: its URDF
     parameters, joint frame; ``flange_map``: flange → joint frame): kind, mass change, total mass and whether the
-    changed link is physically consistent (``core.payload.inertia_problem``, the check the selection applies)."""
+    changed link is physically consistent (``core.estimation.payload.inertia_problem``, the check the selection applies)."""
     total = flange + flange_map @ theta
     kind = ("tool mismatch: the robot's flange link is lighter than the URDF's (its tool is not the URDF's)"
             if theta[0] < 0.0 else "unmodelled payload or tool at the flange")

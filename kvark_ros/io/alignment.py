@@ -1,6 +1,6 @@
 """Turn a recorded run into Estimator inputs: one (stamp, q, q̇, τ_m) per paired joint-state sample.
 
-The pairing is the live node's (``kvark_ros.core.pairing.StreamPairer``) for the run's messages in
+The pairing is the live node's (``kvark_ros.core.estimation.pairing.StreamPairer``) for the run's messages in
 time order: joint states at their header stamps, commands at their log time, a command after the
 state it shares a time with. A command therefore answers the newest joint state stamped at or
 before it, and a state without one takes the newest earlier command no older than
@@ -10,7 +10,7 @@ takes the joint states' effort instead, and a bag without commands falls back to
 In time order that rule decides every state at once (:func:`_paired_rows`): a repeated stamp is
 rejected (out of order), a state's own command is the first one at or after its stamp and before the
 next state's, and a state without one takes the last command before its stamp. Feeding the pairer
-message by message cost more than the rest of a replay; test/test_pairing_bulk.py checks the two
+message by message cost more than the rest of a replay; test/io/test_bulk_pairing.py checks the two
 agree. Stamps that are not finite (which bags cannot hold) still go through the pairer.
 """
 from __future__ import annotations
@@ -21,8 +21,8 @@ from typing import Sequence
 import numpy as np
 
 from kvark_ros.core.config import EstimatorConfig
-from kvark_ros.core.inputs import EstimatorInputs
-from kvark_ros.core.pairing import RESET, Sample, StreamPairer
+from kvark_ros.core.estimation.inputs import EstimatorInputs
+from kvark_ros.core.estimation.pairing import RESET, Sample, StreamPairer
 from kvark_ros.io import BagError, RecordedRun, TopicNames, read_run
 
 

@@ -7,7 +7,7 @@ Messages are read undecoded, all at once (a bag that is one MCAP file through it
 message indexes, ``mcap_bulk``; any other through rosbags), then decoded a topic at
 a time in groups of messages that share a layout (``cdr_arrays``). The result, and
 the error raised for a bad bag, are what decoding them one by one with rosbags in
-read order gives (test/test_bulk_io.py).
+read order gives (test/io/test_bulk_read_write.py).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy.typing as npt
 from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.storage_mcap import McapReader
 
-from kvark_ros.core.pairing import JointColumns
+from kvark_ros.core.estimation.pairing import JointColumns
 from kvark_ros.io.cdr_arrays import Layout, message_fields, windows
 from kvark_ros.io.common import (
     FLOAT64_ARRAY,
@@ -135,7 +135,7 @@ def _describe_topics(types: dict[str, set[str]]) -> str:
 
 
 class _Columns:
-    """The run's joints in a message's name list (``core.pairing.JointColumns``); a bag error if a
+    """The run's joints in a message's name list (``core.estimation.pairing.JointColumns``); a bag error if a
     configured joint is missing or named twice."""
 
     def __init__(self, path: Path, topic: str, wanted: tuple[str, ...]) -> None:

@@ -14,7 +14,7 @@ import numpy as np
 from rclpy.task import Future
 
 from kvark_ros.core.config import EstimatorConfig
-from kvark_ros.core.estimator import Estimator
+from kvark_ros.core.estimation.estimator import Estimator
 
 if TYPE_CHECKING:
     from rclpy.executors import Executor

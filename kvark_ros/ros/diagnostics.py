@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
-from kvark_ros.core.estimator import Estimate, Status
-from kvark_ros.core.model_checks import model_warnings
-from kvark_ros.core.pairing import Reject
-from kvark_ros.core.tare import Tare
+from kvark_ros.core.estimation.estimator import Estimate, Status
+from kvark_ros.core.estimation.model_checks import model_warnings
+from kvark_ros.core.estimation.pairing import Reject
+from kvark_ros.core.estimation.tare import Tare
 
 SERVICE_RESET = "reset: ~/reset service"
 NOT_READY = "dropped: no estimator (model not loaded or waiting for robot_description)"
@@ -55,7 +55,7 @@ class StatusBuilder:
     def model(self, config: Any, urdf_in_use: str, estimator: Any, problem: str,
               reload_problem: str | None, data_rate: float = math.nan) -> DiagnosticStatus:
         """ERROR without an estimator (``problem`` says why), WARN after a failed reload or when the model does not
-        fit the data (``core.model_checks``: rate ``data_rate`` Hz off by more than 20 %, another robot), else OK."""
+        fit the data (``core.estimation.model_checks``: rate ``data_rate`` Hz off by more than 20 %, another robot), else OK."""
         payload = config.payload
         values = {"model_dir": config.model_dir, "observer": config.observer, "urdf": urdf_in_use or config.urdf,
                   "joints": ",".join(config.joint_names), "torque_source": config.input.torque_source,

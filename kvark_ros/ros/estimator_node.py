@@ -2,8 +2,8 @@
 
 Run ``ros2 launch kvark_ros estimator.launch.py`` (or ``ros2 run kvark_ros estimator_node
 --ros-args --params-file config/panda.yaml``). A thin adapter: joint names are matched and states
-paired with commands by ``kvark_ros.core.pairing`` and every number comes from
-``kvark_ros.core.estimator.Estimator.step``, the same code ``kvark replay`` runs over a bag.
+paired with commands by ``kvark_ros.core.estimation.pairing`` and every number comes from
+``kvark_ros.core.estimation.estimator.Estimator.step``, the same code ``kvark replay`` runs over a bag.
 
 Topics, services and parameters: the README's tables. In: ``input.joint_states_topic``
 (``joint_states``), ``input.effort_commands_topic`` (``effort_commands``: Float64MultiArray, or
@@ -14,12 +14,12 @@ services ``~/reset`` (also clears the tare), ``~/reload_model`` and ``~/tare``. 
 the statuses model, input, filter, wrench (unobservable wrench directions near singular poses) and tare.
 
 ``~/tare`` starts averaging τ_ext over ``tare.duration`` s of sample time at rest
-(``kvark_ros.core.tare``) and returns at once: a service callback that waited for the samples would
+(``kvark_ros.core.estimation.tare``) and returns at once: a service callback that waited for the samples would
 hold an executor thread for a second (and deadlock a single-threaded executor, which runs the
 inputs too). It refuses while the robot moves; the outcome (averaging, active with the offset per
 joint, or aborted and why) is on ``/diagnostics`` (``…: tare``).
 
-Pairing: see ``kvark_ros.core.pairing``. Each message is ordered by when it was published (its
+Pairing: see ``kvark_ros.core.estimation.pairing``. Each message is ordered by when it was published (its
 message info's source timestamp; the receive time where the middleware gives none), so an executor
 that falls behind and takes joint state k+1 before command k still pairs command k with state k.
 Stamped commands (``effort_commands_joint_state``) are ordered by their header stamps. With
@@ -70,9 +70,9 @@ from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 
 from kvark_ros.core.config import NODE_NAME, ROBOT_DESCRIPTION, ConfigError
-from kvark_ros.core.estimator import Estimate, Estimator
-from kvark_ros.core.pairing import RESET, JointColumns, Reject, Sample, StreamPairer, stamp_seconds
-from kvark_ros.core.tare import TareError
+from kvark_ros.core.estimation.estimator import Estimate, Estimator
+from kvark_ros.core.estimation.pairing import RESET, JointColumns, Reject, Sample, StreamPairer, stamp_seconds
+from kvark_ros.core.estimation.tare import TareError
 from kvark_ros.ros import parameters
 from kvark_ros.ros.builds import SWITCH_INTERVAL, build, build_off_path
 from kvark_ros.ros.diagnostics import NOT_READY, SERVICE_RESET, StatusBuilder, Window

@@ -39,9 +39,9 @@ from std_srvs.srv import Trigger
 
 from kvark_ros.core.config import NODE_NAME, EstimatorConfig, load_config
 from kvark_ros.core.files import write_text_atomically
-from kvark_ros.core.model_store import load_model
-from kvark_ros.core.pairing import stamp_seconds
-from kvark_ros.core.robot_model import urdf_sha256
+from kvark_ros.core.estimation.model_store import load_model
+from kvark_ros.core.estimation.pairing import stamp_seconds
+from kvark_ros.core.estimation.robot_model import urdf_sha256
 from kvark_ros.io.alignment import read_inputs
 from kvark_ros.ros.player import BagPlayer, playback_rate, read_recording
 from kvark_ros.tools.replay import run_observer

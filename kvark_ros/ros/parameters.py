@@ -5,7 +5,7 @@ Every key of ``kvark_ros.core.config_schema`` becomes a parameter with a descrip
 node-only parameters (``input.torque_source`` replaced the former ``torque_source``). Validation is
 the config's own (``config_from_parameters``): one set of rules for the YAML file, the CLI and the
 node, plus, for a payload changed at run time, that it is a physical rigid body
-(``kvark_ros.core.estimator.payload_problem``).
+(``kvark_ros.core.estimation.estimator.payload_problem``).
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from rclpy.parameter import Parameter
 
 from kvark_ros.core.config import ConfigError, EstimatorConfig, config_from_parameters, with_resolved_paths
 from kvark_ros.core.config_schema import KEYS, KEYS_BY_NAME, Key
-from kvark_ros.core.estimator import payload_problem
+from kvark_ros.core.estimation.estimator import payload_problem
 
 T = Parameter.Type
 PAYLOAD_PREFIX = "robot_model.payload."

@@ -35,7 +35,7 @@ from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension, MultiArrayLayout
 
-from kvark_ros.core.estimator import Estimate
+from kvark_ros.core.estimation.estimator import Estimate
 
 WRENCH_AXES = ("force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z")
 SUBSCRIBER_CHECK = 100          # estimates between checks whether anyone subscribes to the uncertainty topics

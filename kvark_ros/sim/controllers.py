@@ -14,7 +14,7 @@ import numpy as np
 import numpy.typing as npt
 import pinocchio as pin
 
-from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.estimation.robot_model import RobotModel
 
 FloatArray = npt.NDArray[np.float64]
 JointReference = Callable[[float], tuple[FloatArray, FloatArray, FloatArray]]

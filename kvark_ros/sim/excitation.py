@@ -26,7 +26,7 @@ import numpy.typing as npt
 from scipy.optimize import OptimizeResult, differential_evolution
 from scipy.stats import qmc
 
-from kvark_ros.core.linalg import single_threaded_blas
+from kvark_ros.core.estimation.linalg import single_threaded_blas
 from kvark_ros.sim.robots import RobotSetup
 
 FloatArray = npt.NDArray[np.float64]

@@ -71,7 +71,7 @@ import numpy.typing as npt
 from scipy.special import expit
 
 from kvark_ros.core.files import read_yaml
-from kvark_ros.core.payload import Payload
+from kvark_ros.core.estimation.payload import Payload
 
 FloatArray = npt.NDArray[np.float64]
 PLANT_DIR = Path(__file__).resolve().parent / "plants"
@@ -433,7 +433,7 @@ class OracleResidual:
     """The plant's true friction as a residual model, for the ``oracle`` observer.
 
     ``predict(q̇)`` (n,) rad/s gives ``(τ_f(q̇), variance)``, (n,) N·m and (n,) N²·m²: the
-    ``ResidualPredictor`` of ``kvark_ros.core.observers.base``, passed to ``make_observer`` and
+    ``ResidualPredictor`` of ``kvark_ros.core.estimation.observers.base``, passed to ``make_observer`` and
     ``Estimator.from_config`` as ``oracle``. τ_f is the warm friction (``friction_drift`` factor 1).
 
     It covers friction only. The rigid-body part of the plant (``link_inertia``, ``tool``) is ``urdf``:

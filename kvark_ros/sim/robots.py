@@ -10,8 +10,8 @@ from functools import cache
 
 import numpy as np
 
-from kvark_ros.core.payload import Payload
-from kvark_ros.core.robot_model import RobotModel, resolve_urdf
+from kvark_ros.core.estimation.payload import Payload
+from kvark_ros.core.estimation.robot_model import RobotModel, resolve_urdf
 
 
 @cache

@@ -39,7 +39,7 @@ import numpy.typing as npt
 import pinocchio as pin
 from tqdm import tqdm
 
-from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.io import SIMULATOR_SOURCE, CommandSeries, JointStateSeries, RecordedRun, WrenchSeries
 from kvark_ros.sim.controllers import (CartesianImpedanceController, CartesianTarget,
                                        JointTrackingController)

@@ -13,7 +13,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import numpy.typing as npt
 
-from kvark_ros.core.payload import Payload
+from kvark_ros.core.estimation.payload import Payload
 from kvark_ros.sim.plant import LinkError, LinkErrorDraw, PlantError, PlantSpec
 from kvark_ros.sim.robots import RobotSetup, urdf_xml
 

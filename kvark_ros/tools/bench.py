@@ -18,10 +18,10 @@ from dataclasses import replace
 import numpy as np
 
 from kvark_ros.core.config import OBSERVER_NAMES, default_config_path, load_config, parse_observers
-from kvark_ros.core.estimator import Estimator
-from kvark_ros.core.model_store import load_model
-from kvark_ros.core.observers import LEARNED_BASELINE_VARIANTS, make_observer
-from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.estimation.estimator import Estimator
+from kvark_ros.core.estimation.model_store import load_model
+from kvark_ros.core.estimation.observers import LEARNED_BASELINE_VARIANTS, make_observer
+from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream, train_synthetic
 
 WARM_UP_STEPS = 500

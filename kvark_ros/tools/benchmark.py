@@ -22,9 +22,9 @@ from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 from kvark_ros.core.config import EstimatorConfig, default_config_path, load_config, parse_observers
 from kvark_ros.core.files import write_text_atomically
-from kvark_ros.core.model_store import save_model
-from kvark_ros.core.robot_model import RobotModel
-from kvark_ros.core.training import train_model
+from kvark_ros.core.estimation.model_store import save_model
+from kvark_ros.core.estimation.robot_model import RobotModel
+from kvark_ros.core.learning.training import train_model
 from kvark_ros.io import write_run
 from kvark_ros.io.alignment import read_inputs
 from kvark_ros.tools.evaluate import Setup, dask_client, decoded, evaluate_bags, loaded, merge

@@ -38,11 +38,11 @@ from kvark_ros.core.config import (
     parse_observers,
 )
 from kvark_ros.core.files import write_text_atomically
-from kvark_ros.core.inputs import EstimatorInputs
-from kvark_ros.core.model_checks import measured_rate, model_warnings
-from kvark_ros.core.model_store import MODEL_FILE, TrainedModel, load_model
-from kvark_ros.core.observers import ResidualPredictor, make_observer
-from kvark_ros.core.robot_model import RobotModel, urdf_sha256
+from kvark_ros.core.estimation.inputs import EstimatorInputs
+from kvark_ros.core.estimation.model_checks import measured_rate, model_warnings
+from kvark_ros.core.estimation.model_store import MODEL_FILE, TrainedModel, load_model
+from kvark_ros.core.estimation.observers import ResidualPredictor, make_observer
+from kvark_ros.core.estimation.robot_model import RobotModel, urdf_sha256
 from kvark_ros.io import BagError
 from kvark_ros.io.alignment import read_inputs
 from kvark_ros.tools.metrics import observer_metrics

@@ -29,7 +29,7 @@ import yaml
 from kvark_ros.core.config import EXAMPLE_ROBOT_DATA_PREFIX, NODE_NAME, ConfigError, load_config
 from kvark_ros.core.config_schema import KEYS, Key
 from kvark_ros.core.files import write_text_atomically
-from kvark_ros.core.robot_model import RobotModel, resolve_urdf
+from kvark_ros.core.estimation.robot_model import RobotModel, resolve_urdf
 from kvark_ros.tools.xacro_files import expand_xacro, parse_assignments
 
 _WIDTH = 110

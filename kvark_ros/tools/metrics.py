@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtri
 
-from kvark_ros.core.contact import chi2_quantile
+from kvark_ros.core.estimation.contact import chi2_quantile
 
 Z95 = 1.96                                  # half-width of the 95 % interval in σ (coverage95, as it always was)
 LEVELS = (0.5, 0.8, 0.9, 0.95, 0.99)        # nominal coverages of the reliability table

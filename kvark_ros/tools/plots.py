@@ -15,9 +15,9 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-from kvark_ros.core.inputs import EstimatorInputs
-from kvark_ros.core.model_store import TrainedModel
-from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.estimation.inputs import EstimatorInputs
+from kvark_ros.core.estimation.model_store import TrainedModel
+from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.tools.metrics import CONTACT_TORQUE, SETTLE
 
 MAX_POINTS = 4000        # scatter points per joint, so figures stay light
@@ -50,7 +50,7 @@ def plot_training(robot: RobotModel, trained: TrainedModel, segments: Sequence[E
 
     A joint whose KMP also takes the pose (q or g(q)) has no single curve over q̇: its KMP mean is drawn at
     the data's own samples instead."""
-    from kvark_ros.core.training import training_data
+    from kvark_ros.core.learning.training import training_data
     data = training_data(robot, segments)
     rng = np.random.default_rng(0)
     pick = rng.choice(len(data.qd), size=min(MAX_POINTS, len(data.qd)), replace=False)

@@ -27,10 +27,10 @@ from kvark_ros.core.config import (
     parse_observers,
 )
 from kvark_ros.core.files import write_text_atomically
-from kvark_ros.core.inputs import EstimatorInputs
-from kvark_ros.core.model_store import save_model
-from kvark_ros.core.robot_model import RobotModel
-from kvark_ros.core.training import train_model
+from kvark_ros.core.estimation.inputs import EstimatorInputs
+from kvark_ros.core.estimation.model_store import save_model
+from kvark_ros.core.estimation.robot_model import RobotModel
+from kvark_ros.core.learning.training import train_model
 from kvark_ros.io import BagError
 from kvark_ros.io.alignment import read_inputs
 from kvark_ros.tools.metrics import observer_metrics

@@ -21,7 +21,7 @@ from typing import Sequence
 
 import numpy as np
 
-from kvark_ros.core.inputs import EstimatorInputs
+from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.io import BagError
 
 # rad, RMS position difference on the worst joint after alignment that still counts as the same motion: a

@@ -22,14 +22,14 @@ from typing import Sequence
 import numpy as np
 
 from kvark_ros.core.config import OBSERVER_NAMES, ConfigError, EstimatorConfig, load_config, parse_observers
-from kvark_ros.core.estimator import Estimator
+from kvark_ros.core.estimation.estimator import Estimator
 from kvark_ros.core.files import write_text_atomically
-from kvark_ros.core.tare import TareError
-from kvark_ros.core.inputs import EstimatorInputs
-from kvark_ros.core.model_store import TrainedModel, load_model
-from kvark_ros.core.model_checks import measured_rate, model_warnings
-from kvark_ros.core.observers import ResidualPredictor
-from kvark_ros.core.robot_model import RobotModel, condition_numbers, urdf_sha256
+from kvark_ros.core.estimation.tare import TareError
+from kvark_ros.core.estimation.inputs import EstimatorInputs
+from kvark_ros.core.estimation.model_store import TrainedModel, load_model
+from kvark_ros.core.estimation.model_checks import measured_rate, model_warnings
+from kvark_ros.core.estimation.observers import ResidualPredictor
+from kvark_ros.core.estimation.robot_model import RobotModel, condition_numbers, urdf_sha256
 from kvark_ros.io import (BagError, BagWriter, RecordedRun, bool_messages, float64_array_messages,
                           joint_state_messages, load_message_types, wrench_messages, write_run_messages)
 from kvark_ros.io.alignment import read_inputs

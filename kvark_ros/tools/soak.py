@@ -32,10 +32,10 @@ from typing import Callable
 import numpy as np
 
 from kvark_ros.core.config import EstimatorConfig, default_config_path, load_config
-from kvark_ros.core.estimator import Estimator, Status
-from kvark_ros.core.model_store import TrainedModel
-from kvark_ros.core.observers import LEARNED_BASELINE_VARIANTS, make_observer
-from kvark_ros.core.robot_model import RobotModel
+from kvark_ros.core.estimation.estimator import Estimator, Status
+from kvark_ros.core.estimation.model_store import TrainedModel
+from kvark_ros.core.estimation.observers import LEARNED_BASELINE_VARIANTS, make_observer
+from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.tools.synthetic import synthetic_stream
 
 RATE = 500.0                 # Hz, sample rate of the synthetic stream

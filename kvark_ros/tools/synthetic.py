@@ -13,10 +13,10 @@ from typing import Callable
 
 import numpy as np
 
-from kvark_ros.core.inputs import EstimatorInputs
-from kvark_ros.core.model_store import TrainedModel
-from kvark_ros.core.robot_model import RobotModel
-from kvark_ros.core.training import train_model
+from kvark_ros.core.estimation.inputs import EstimatorInputs
+from kvark_ros.core.estimation.model_store import TrainedModel
+from kvark_ros.core.estimation.robot_model import RobotModel
+from kvark_ros.core.learning.training import train_model
 
 # Gaz et al., RA-L 2019, Panda joint friction (docs/method.md §10): τ_f = φ1/(1+e^{−φ2(q̇+φ3)}) − φ1/(1+e^{−φ2 φ3})
 GAZ_PHI1 = np.array([0.54615, 0.87224, 0.64068, 1.2794, 0.83904, 0.30301, 0.56489])        # N·m

@@ -1,6 +1,6 @@
 """``kvark train``: residual models and filter tuning from contact-free ROS 2 bags.
 
-Reads the bags, trains with ``kvark_ros.core.training`` (residuals τ_m − τ_EL, GMM → GMR → KMP,
+Reads the bags, trains with ``kvark_ros.core.learning.training`` (residuals τ_m − τ_EL, GMM → GMR → KMP,
 covariance matching, the baselines' residual models; with a model augmentation from
 ``kvark diagnose`` the residuals are relative to the augmented model and the augmentation is
 stored with the model), records where the model came from (bag and URDF hashes) and writes the
@@ -12,12 +12,12 @@ import argparse
 import hashlib
 from pathlib import Path
 
-from kvark_ros.core.augmentation import load_augmentation
+from kvark_ros.core.estimation.augmentation import load_augmentation
 from kvark_ros.core.config import EstimatorConfig, load_config
-from kvark_ros.core.model_store import save_model
-from kvark_ros.core.residual.common import available_cores
-from kvark_ros.core.robot_model import RobotModel, urdf_sha256
-from kvark_ros.core.training import INPUT_MODES, train_model
+from kvark_ros.core.estimation.model_store import save_model
+from kvark_ros.core.estimation.residual.common import available_cores
+from kvark_ros.core.estimation.robot_model import RobotModel, urdf_sha256
+from kvark_ros.core.learning.training import INPUT_MODES, train_model
 from kvark_ros.io.alignment import load_recordings
 
 

@@ -16,7 +16,7 @@ the test moves:
   :func:`set_time`, which also fires the timers that fall due;
 - parameters follow rclpy's rules (declare/override/descriptor/read-only/range/callbacks).
 
-Only the tests put this directory on ``sys.path`` (see ``test/test_estimator_node.py``); it is
+Only the tests put this directory on ``sys.path`` (see ``test/ros/test_node_logic_stand_in.py``); it is
 never installed.
 """
 from __future__ import annotations

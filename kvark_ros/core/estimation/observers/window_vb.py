@@ -1,0 +1,106 @@
+"""Windowed VB on Σ_d for the momentum-state K-VARK filter (``filter.vb_variant: window``).
+
+Why a window. One momentum sample says almost nothing about one step's increment
+τ_k − τ_{k−1} (its information is ~h² Σ_d / R ≈ 1e-4 on the Panda), so the lag-one statistic
+(``smoothed``) returns the prior and Σ_d never moves. Over L samples the random walk (eq. 32)
+gives ``E[(τ_k − τ_{k−L})²] = L Σ_d``, which the data resolve for L of a few tens of samples. The
+filter carries S = WINDOW_SNAPSHOTS snapshots z_j of τ_ext (z_j = τ_{k_j}, no dynamics, not
+measured) in its state, so the joint posterior of (τ_k, z_j) given y_1:k, cross covariance
+included, comes from the ordinary update; the (p, τ) estimate is unchanged by them. A snapshot
+taken t_j seconds ago gives the density statistic
+``s_j = ((τ̂_k − ẑ_j)² + P_ττ + P_zz − 2 P_τz) / t_j`` (N²·m²/s). The IW posterior (eqs. 36-39,
+n = 1 per joint) with prior mean q_0 (training, Σ_d0 = q_0 h) and dof ν_0 (``filter.vb_prior_dof``),
+forgetting ρ per sample (``filter.vb_forgetting``) applied to the data part only, so that Σ_d
+returns to the prior:
+
+    λ_k = ν_0 + 2 + ρ^m (λ_{k−m} − ν_0 − 2) + 1/S          (eq. 37; windows overlap S-fold)
+    Υ_k = ν_0 q_0 + ρ^m (Υ_{k−m} − ν_0 q_0) + s_j / S      (eq. 38 with the windowed statistic)
+    Σ_d,k = h Υ_k / (λ_k − 2)                               (eq. 39), at most WINDOW_MAX_RATIO Σ_d0
+
+with m = L / S samples between closing windows. ``filter.vb_iterations`` does not apply: the
+statistic comes from samples already filtered.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from kvark_ros.core.estimation.observers.base import Stateful
+
+WINDOW_SNAPSHOTS = 5    # staggered windows, one closing every vb_window / 5 samples
+WINDOW_MAX_RATIO = 1e4  # Σ_d never exceeds this multiple of the prior Σ_d0
+
+
+class WindowVB(Stateful):
+    """The snapshots of τ_ext and the IW statistics of the windowed VB, for n joints (module docstring).
+
+    State (arrays (n,) or (n, S)): ``z`` ẑ_j N·m, ``zz`` Var z_j N²·m², ``pz`` and ``tz``
+    Cov(p, z_j) N·m²·s and Cov(τ, z_j) N²·m², ``age`` (S,) seconds since snapshot j, ``q`` the
+    current density estimate N²·m²/s, ``scale``/``dof`` the forgotten data parts of Υ and λ.
+    Per step the filter calls ``predict`` before and ``update`` after its own (p, τ) update.
+    """
+
+    STATE = ("z", "zz", "pz", "tz", "age", "count", "q", "scale", "dof")
+
+    def __init__(self, prior_density: np.ndarray, window: int, forgetting: float, prior_dof: float) -> None:
+        """``prior_density``: q_0 (n,) N²·m²/s; ``window``: L samples; ``forgetting``: ρ; ``prior_dof``: ν_0."""
+        self.q0 = prior_density
+        self.n = len(prior_density)
+        self.stride = max(window // WINDOW_SNAPSHOTS, 1)               # m, samples between closing windows
+        self.forgetting = forgetting
+        self.prior_dof = prior_dof
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the snapshots and the statistics: Σ_d back at the prior."""
+        self.z: np.ndarray | None = None                               # set from τ̂_0 at the first step
+        self.zz = self.pz = self.tz = None
+        self.age = np.zeros(WINDOW_SNAPSHOTS)
+        self.count = 0
+        self.q = self.q0.copy()
+        self.scale = np.zeros(self.n)
+        self.dof = 0.0
+
+    def predict(self, h: float, tau: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+        """Predict the snapshot covariances over the step h; returns Σ_d = q h (n,) for (K2).
+
+        ``tau``, ``b``, ``c``: the filter's posterior at k−1 (τ̂ and P_pτ, P_ττ), (n,); all
+        snapshots start there at the first step.
+        """
+        if self.z is None:                                             # all snapshots start at τ̂_0
+            ones = np.ones((self.n, WINDOW_SNAPSHOTS))
+            self.z, self.zz = ones * tau[:, None], ones * c[:, None]
+            self.pz, self.tz = ones * b[:, None], ones * c[:, None]
+        self.pz = self.pz + h * self.tz                                # Cov(p⁻, z) = (F P)_pz
+        return self.q * h
+
+    def update(self, h: float, nu: np.ndarray, s: np.ndarray, k1: np.ndarray, k2: np.ndarray, tau: np.ndarray,
+               b: np.ndarray, c: np.ndarray) -> np.ndarray:
+        """Update the snapshots with the filter's gain and close a window every m samples.
+
+        ``nu``: innovation (n,) N·m·s; ``s``: its variance S; ``k1``, ``k2``: the gain K = [k1; k2];
+        ``tau``, ``b``, ``c``: the filter's posterior at k. Returns Σ_d = q h (n,), N²·m².
+        """
+        pz, tz = self.pz, self.tz
+        gain_z = pz / s[:, None]                                       # K for z: Cov(z, p⁻) / S
+        self.z = self.z + gain_z * nu[:, None]
+        self.zz = self.zz - pz * gain_z                                # P_zz − Cov(z, p⁻)² / S
+        self.tz = tz - k2[:, None] * pz                                # Cov(x⁺, z) = Cov(x⁻, z) − K Cov(p⁻, z)
+        self.pz = pz - k1[:, None] * pz
+        self.age = self.age + h
+        self.count += 1
+        stride, snapshots, q0 = self.stride, WINDOW_SNAPSHOTS, self.q0
+        if self.count % stride == 0:
+            j = (self.count // stride) % snapshots
+            if self.count >= stride * snapshots:                       # snapshot j spans a whole window
+                delta = tau - self.z[:, j]
+                stat = (delta * delta + c + self.zz[:, j] - 2.0 * self.tz[:, j]) / self.age[j]
+                forget = self.forgetting ** stride
+                self.scale = forget * self.scale + np.maximum(stat, 0.0) / snapshots   # eq. 38
+                self.dof = forget * self.dof + 1.0 / snapshots                         # eq. 37
+                dof = self.prior_dof
+                q = (dof * q0 + self.scale) / (dof + self.dof)                         # eq. 39
+                self.q = np.minimum(q, WINDOW_MAX_RATIO * q0)
+            self.z[:, j], self.zz[:, j] = tau, c                       # new snapshot z_j = τ_k
+            self.pz[:, j], self.tz[:, j] = b, c
+            self.age[j] = 0.0
+        return self.q * h

@@ -1,0 +1,130 @@
+"""Calibrated reported intervals (core/estimation/calibration.py, docs/method.md §4.13)."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from kvark_ros.core.estimation.calibration import COVERAGE, IntervalScale
+from kvark_ros.core.learning.interval_factors import WARMUP, Z95, interval_scale, needed_factor
+from kvark_ros.core.estimation.estimator import Estimator
+from kvark_ros.core.estimation.model_store import load_model, save_model
+from kvark_ros.core.estimation.observers import make_observer
+from kvark_ros.core.estimation.residual.files import ResidualModelError
+from kvark_ros.tools.synthetic import synthetic_stream
+
+
+class _WhiteObserver:
+    """Reports σ_j but its τ̂_j is k_j σ_j times a standard normal draw: the factor to find is k."""
+
+    def __init__(self, sigma: np.ndarray, k: np.ndarray, seed: int) -> None:
+        self.sigma, self.k, self.seed = sigma, k, seed
+        self.reset()
+
+    def reset(self) -> None:
+        self.rng = np.random.default_rng(self.seed)
+
+    def step(self, dt, qd, p, p_prev, u_prev, q, g):
+        return self.k * self.sigma * self.rng.standard_normal(len(self.sigma)), np.diag(self.sigma ** 2)
+
+
+def test_apply_scales_rows_and_columns():
+    scale = IntervalScale(np.array([2.0, 0.5]))
+    P = np.array([[4.0, 1.0], [1.0, 9.0]])
+    np.testing.assert_allclose(scale.apply(P), np.diag([2.0, 0.5]) @ P @ np.diag([2.0, 0.5]))
+
+
+@pytest.mark.parametrize("bad", [[1.0, 0.0], [1.0, np.nan], [[1.0]]])
+def test_non_positive_or_non_finite_factors_are_refused(bad):
+    with pytest.raises(ValueError, match="positive finite"):
+        IntervalScale(np.array(bad))
+
+
+def test_the_factor_that_covers_95_percent_of_the_contact_free_estimate_is_found():
+    n, samples = 3, 6000
+    sigma, k = np.array([0.5, 1.0, 2.0]), np.array([0.3, 1.0, 2.5])
+    stamp = np.arange(samples) * 0.002
+    zeros = np.zeros((samples, n))
+    observer = _WhiteObserver(sigma, k, seed=4)
+    found = interval_scale(observer, [stamp], [zeros], [zeros], [zeros], [zeros], [zeros]).scale
+    # 5750 samples after the warm-up: the 95 % quantile of |N(0, 1)| has a standard error of
+    # √(0.95·0.05/5750)/(2φ(1.96)) ≈ 0.025, 1.3 % of 1.96; 5 % is about four of them.
+    np.testing.assert_allclose(found, k, rtol=0.05)
+    assert WARMUP > 0 and COVERAGE == 0.95 and abs(Z95 - 1.96) < 1e-3
+
+
+def test_needed_factor_is_the_least_c_that_covers_each_sample():
+    tau, sigma, band = np.array([[2.0 * Z95, 1.0, 0.5]]), np.array([[1.0, 1.0, 2.0]]), np.array([[3.0, 1.0, 0.0]])
+    found = needed_factor(tau, sigma, band)
+    # (2 z / z)² − 3 = 1; 1 N·m is inside the band alone; no band: |τ̂| / (1.96 σ).
+    np.testing.assert_allclose(found, [[1.0, 0.0, 0.5 / (Z95 * 2.0)]], rtol=1e-12)
+    assert np.all(np.abs(tau) <= Z95 * np.sqrt((found * sigma) ** 2 + band) * (1.0 + 1e-12))     # inside at c_k
+    outside = np.abs(tau) > Z95 * np.sqrt((0.99 * found * sigma) ** 2 + band)
+    assert outside[0, 0] and outside[0, 2]                                                          # outside below
+
+
+def test_the_factor_is_read_for_the_interval_with_the_static_band_inside():
+    """Half the samples at rest, where a band of σ²_s = 3 N²·m² covers N(0, 1) all but 0.07 % of the time; half
+    sliding, where it is gone: the 5 % that may miss are all sliding ones, so c covers 90 % there,
+    1.96 c = 1.645 (c = 0.839), where without the band c = 1."""
+    samples = 6000
+    stamp = np.arange(samples) * 0.002
+    qd = np.where(np.arange(samples) % 2 == 0, 0.0, 1.0)[:, None]
+    zeros = np.zeros((samples, 1))
+    band = lambda v: 3.0 * np.exp(-np.square(v / 0.05))                       # noqa: E731
+    observer = _WhiteObserver(np.ones(1), np.ones(1), seed=2)
+    found = interval_scale(observer, [stamp], [qd], [zeros], [zeros], [zeros], [zeros], band).scale
+    # 2875 sliding samples: the 90 % quantile of |N(0, 1)| has a standard error of √(0.9·0.1/2875)/(2φ(1.645))
+    # ≈ 0.027, 1.7 % of 1.645; 5 % is three of them.
+    np.testing.assert_allclose(found, 1.6448536 / Z95, rtol=0.05)
+    plain = interval_scale(_WhiteObserver(np.ones(1), np.ones(1), seed=2), [stamp], [qd], [zeros], [zeros], [zeros],
+                           [zeros]).scale
+    np.testing.assert_allclose(plain, 1.0, rtol=0.05)
+
+
+def test_too_few_samples_are_refused():
+    stamp = np.arange(300) * 0.002          # 0.6 s: 50 samples after the warm-up
+    zeros = np.zeros((300, 1))
+    with pytest.raises(ValueError, match="at least 100"):
+        interval_scale(_WhiteObserver(np.ones(1), np.ones(1), 0), [stamp], [zeros], [zeros], [zeros], [zeros],
+                       [zeros])
+
+
+def test_model_round_trip_keeps_the_factors_and_refuses_a_wrong_length(tmp_path, panda_trained):
+    trained = replace(panda_trained, interval_scale=IntervalScale(np.linspace(0.5, 2.0, 7)))
+    save_model(tmp_path / "model", trained)
+    loaded = load_model(tmp_path / "model")
+    np.testing.assert_array_equal(loaded.interval_scale.scale, trained.interval_scale.scale)
+    save_model(tmp_path / "short", replace(panda_trained, interval_scale=IntervalScale(np.ones(6))))
+    with pytest.raises(ResidualModelError, match="disagree on the number of joints"):
+        load_model(tmp_path / "short")
+
+
+def _reported(config, panda, trained, stream):
+    estimator = Estimator(config, panda, make_observer("kvark", trained, config.filter), trained)
+    covariances, flags = [], []
+    for k in range(len(stream.stamp)):
+        estimate = estimator.step(stream.stamp[k], stream.q[k], stream.qd[k], stream.tau_m[k])
+        if estimate is not None:
+            covariances.append(estimate.tau_cov)
+            flags.append((estimate.contact, estimate.collision))
+    return np.array(covariances), flags
+
+
+def test_the_estimator_reports_the_scaled_covariance_and_its_flags_do_not_move(panda, panda_config, panda_trained):
+    c = np.linspace(0.5, 3.0, 7)
+    trained = replace(panda_trained, interval_scale=IntervalScale(c))
+    stream = synthetic_stream(panda, 1.0, seed=5)
+    config = replace(panda_config, filter=replace(panda_config.filter, stiction_velocity=0.0))
+    scaled, flags = _reported(config, panda, trained, stream)
+    off = replace(config, filter=replace(config.filter, interval_calibration="off"))
+    raw, raw_flags = _reported(off, panda, trained, stream)
+    np.testing.assert_allclose(scaled, raw * np.outer(c, c), rtol=1e-12)
+    assert flags == raw_flags
+
+
+def test_training_calibrates_the_intervals_on_its_own_recordings(panda_trained):
+    scale = panda_trained.interval_scale
+    assert scale is not None and scale.scale.shape == (7,)
+    assert np.all((scale.scale > 0.05) & (scale.scale < 20.0))

@@ -14,7 +14,8 @@ export OMP_NUM_THREADS := 1
 export OPENBLAS_NUM_THREADS := 1
 export MKL_NUM_THREADS := 1
 
-.PHONY: demo test test-newest smoke-newest newest-venv lock versions bench bags model benchmark reliability clean
+.PHONY: demo test test-newest smoke-newest newest-venv lock versions bench bags model benchmark reliability clean \
+  generated
 
 KVARK   := $(BIN)/kvark
 CONFIG  := config/panda.yaml
@@ -71,6 +72,11 @@ benchmark: $(STAMP)
 test: $(STAMP)
 	@$(BIN)/python test/versions.py
 	$(BIN)/python -m pytest -q
+
+## generated: after a change to the key table (kvark_ros/core/config_schema.py), write what it generates: the typed
+## settings (kvark_ros/core/settings.py) and the key comments of config/*.yaml (values, notes and prose kept)
+generated: $(STAMP)
+	$(BIN)/python -m kvark_ros.core.config_schema --write-settings --write-configs
 
 ## versions: the interpreter and the installed versions the figures depend on
 versions: $(STAMP)

@@ -9,9 +9,16 @@ import argparse
 import importlib
 import importlib.util
 import sys
-from typing import NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 from kvark_ros import __version__
+
+
+class SubParsers(Protocol):
+    """The ``subparsers`` a command module's ``add_parser`` registers on (argparse's own class for it is private)."""
+
+    def add_parser(self, name: str, **kwargs: Any) -> argparse.ArgumentParser:
+        """Register the sub-command ``name`` (``kwargs``: ``help`` and ArgumentParser's) and return its parser."""
 
 
 class Command(NamedTuple):

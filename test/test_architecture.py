@@ -15,7 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from kvark_ros.core.config_schema import KEYS, keys_table
+from kvark_ros.core.config_schema import (KEYS, REGENERATE, SETTINGS_PATH, keys_table, regenerated_config_text,
+                                          settings_source)
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "kvark_ros"
@@ -95,7 +96,8 @@ def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
 def test_no_import_cycle_between_modules_or_between_packages():
     """Package imports (``from kvark_ros.io import x``) resolve to the package facade, which is a module too."""
     graph = _imports()
-    cycle = _cycle({module: {t for t in targets if not module.startswith(t + ".")} for module, targets in graph.items()})
+    cycle = _cycle({module: {t for t in targets if not module.startswith(t + ".")}
+                    for module, targets in graph.items()})
     assert cycle is None, " -> ".join(cycle or [])
     packages: dict[str, set[str]] = {}
     for module, targets in graph.items():
@@ -129,6 +131,20 @@ def test_the_node_loads_no_plotting_fitting_or_offline_module():
 def test_readme_key_table_is_the_schema():
     """The README's table of configuration keys is ``kvark config --keys`` verbatim."""
     assert keys_table() in (ROOT / "README.md").read_text()
+
+
+def test_settings_module_is_what_the_key_table_generates():
+    """The typed settings (``kvark_ros/core/settings.py``) are generated from KEYS: a new row needs the generator."""
+    assert SETTINGS_PATH.read_text() == settings_source(), (f"{SETTINGS_PATH.name} is not what KEYS generates; "
+                                                            f"run {REGENERATE}")
+
+
+@pytest.mark.parametrize("config", sorted((ROOT / "config").glob("*.yaml")), ids=lambda p: p.name)
+def test_config_file_comments_are_what_the_key_table_generates(config):
+    """Every key of KEYS is in the file, with its table comment; the file's values, notes and prose are its own."""
+    text = config.read_text()
+    assert regenerated_config_text(text, config.name) == text, (f"{config.name} is not what KEYS generates; "
+                                                                f"run {REGENERATE}")
 
 
 @pytest.mark.parametrize("config", sorted((ROOT / "config").glob("*.yaml")), ids=lambda p: p.name)

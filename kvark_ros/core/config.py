@@ -4,7 +4,8 @@ The YAML file is the node's parameter file (``kvark_estimator: ros__parameters: 
 same file configures live and offline runs. Nested groups map to dotted ROS parameter names
 (``filter.ewma_time``). The keys, their checks, defaults and meanings are the one table of
 ``kvark_ros.core.config_schema``; ``EstimatorConfig`` and its typed groups (``config.filter``,
-``config.wrench``, ...) are made from it, so a new key is a row there plus the code that reads it.
+``config.wrench``, ...) are generated from it into ``kvark_ros.core.settings`` and re-exported here, so a new
+key is a row there, ``make generated`` and the code that reads it.
 Every key is validated here, in one place; a bad key or value raises ``ConfigError`` naming the key
 and what is allowed.
 """
@@ -12,59 +13,29 @@ from __future__ import annotations
 
 import os
 import sys
-from dataclasses import make_dataclass, replace
+from dataclasses import replace
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, Mapping
 
-from kvark_ros.core.config_schema import (GROUPS, KEYS, KEYS_BY_NAME, MEASUREMENTS, OBSERVER_NAMES, RENAMED_KEYS,
-                                          VB_VARIANTS, WRENCH_FRAMES, Key, vb_variant_problem)
+from kvark_ros.core.config_schema import (KEYS, KEYS_BY_NAME, MEASUREMENTS, NODE_NAME, OBSERVER_NAMES, REMOVED_KEYS,
+                                          RENAMED_KEYS, VB_VARIANTS, WRENCH_FRAMES, Key, vb_variant_problem)
 from kvark_ros.core.files import read_yaml
 from kvark_ros.core.estimation.payload import Payload
+from kvark_ros.core.settings import (SETTINGS_BY_GROUP, ContactSettings, DiagnosticsSettings, EstimatorConfig,
+                                     FilterSettings, InputSettings, OutputSettings, TareSettings, WrenchSettings)
 
 __all__ = ["NODE_NAME", "OBSERVER_NAMES", "WRENCH_FRAMES", "VB_VARIANTS", "MEASUREMENTS", "EXAMPLE_ROBOT_DATA_PREFIX",
            "ConfigError", "EstimatorConfig", "FilterSettings", "WrenchSettings", "InputSettings", "ContactSettings",
-           "DiagnosticsSettings", "flatten_parameters", "config_from_parameters",
+           "DiagnosticsSettings", "OutputSettings", "TareSettings", "flatten_parameters", "config_from_parameters",
            "parameter_defaults", "default_filter_settings", "load_config", "with_resolved_paths", "default_config_path",
            "parse_observers"]
 
-NODE_NAME = "kvark_estimator"
 EXAMPLE_ROBOT_DATA_PREFIX = "example-robot-data:"
 ROBOT_DESCRIPTION = "robot_description"       # robot_model.urdf: the node takes the URDF from this topic
 
 
 class ConfigError(ValueError):
     """A configuration file or value is invalid; the message names the key and the fix."""
-
-
-def _settings_type(group: str) -> type:
-    """The frozen dataclass of one group of keys, e.g. ``FilterSettings`` for ``filter.*``."""
-    fields = [(key.attr, key.python_type) for key in KEYS if key.group == group]
-    name = "".join(part.title() for part in group.split("_")) + "Settings"
-    return make_dataclass(name, fields, frozen=True,
-                          namespace={"__module__": __name__,
-                                     "__doc__": f"The ``{group}`` keys of the config (config_schema.KEYS)."})
-
-
-# robot_model.payload.* is not a settings group: it becomes ``config.payload``, a Payload or None (mass 0).
-_GROUP_TYPES: dict[str, type] = {group: _settings_type(group) for group in GROUPS if group != "payload"}
-FilterSettings = _GROUP_TYPES["filter"]
-WrenchSettings = _GROUP_TYPES["wrench"]
-InputSettings = _GROUP_TYPES["input"]
-ContactSettings = _GROUP_TYPES["contact"]
-DiagnosticsSettings = _GROUP_TYPES["diagnostics"]
-
-
-def _n_joints(self: Any) -> int:
-    return len(self.joint_names)
-
-
-EstimatorConfig = make_dataclass(
-    "EstimatorConfig",
-    [(key.attr, key.python_type) for key in KEYS if key.group is None]
-    + [("payload", Optional[Payload])] + [(group, settings) for group, settings in _GROUP_TYPES.items()],
-    frozen=True,
-    namespace={"__module__": __name__, "n_joints": property(_n_joints),
-               "__doc__": "Validated estimator settings (config_schema.KEYS). Units SI; see config/panda.yaml."})
 
 
 def flatten_parameters(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -104,6 +75,9 @@ def config_from_parameters(parameters: Mapping[str, Any], source: str = "configu
         new, how = RENAMED_KEYS[renamed[0]]
         raise ConfigError(f"{source}: key '{renamed[0]}' is now '{new}' (seconds, independent of the sample rate; "
                           f"{how})")
+    removed = [name for name in unknown if name in REMOVED_KEYS]
+    if removed:
+        raise ConfigError(f"{source}: key '{removed[0]}' was removed: {REMOVED_KEYS[removed[0]]}")
     if unknown:
         raise ConfigError(f"{source}: unknown key '{unknown[0]}'; allowed keys: {', '.join(KEYS_BY_NAME)}")
     values = {key.name: _value(key, parameters, source) for key in KEYS}
@@ -112,7 +86,7 @@ def config_from_parameters(parameters: Mapping[str, Any], source: str = "configu
         raise ConfigError(f"{source}: key {problem}")
     top = {key.attr: values[key.name] for key in KEYS if key.group is None}
     groups = {group: settings(**{key.attr: values[key.name] for key in KEYS if key.group == group})
-              for group, settings in _GROUP_TYPES.items()}
+              for group, settings in SETTINGS_BY_GROUP.items()}
     mass = values["robot_model.payload.mass"]
     payload = None if mass == 0.0 else Payload(mass, values["robot_model.payload.com"],
                                                values["robot_model.payload.inertia"])
@@ -131,7 +105,7 @@ def parse_observers(text: str, with_oracle: bool = False) -> list[str]:
 
 def default_filter_settings() -> FilterSettings:
     """The ``filter.*`` keys at their defaults (what training calibrates with when given no config)."""
-    return FilterSettings(**{key.attr: key.default for key in KEYS if key.group == "filter"})
+    return FilterSettings()
 
 
 def parameter_defaults() -> dict[str, Any]:

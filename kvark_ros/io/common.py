@@ -22,15 +22,15 @@ FLOAT64_ARRAY = "std_msgs/msg/Float64MultiArray"
 WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
 BOOL = "std_msgs/msg/Bool"
 
-_NS = 1_000_000_000
+NS_PER_SECOND = 1_000_000_000   # bags store integer nanosecond stamps
 
 
 @cache
-def _typestore() -> Any:
+def typestore() -> Any:
     """The single Jazzy typestore: message classes, CDR (de)serialisation."""
     return get_typestore(Stores.ROS2_JAZZY)
 
 
 def load_message_types() -> None:
     """Build the typestore now (about 0.05 s, once per process) rather than inside the first bag's reading."""
-    _typestore()
+    typestore()

@@ -6,7 +6,7 @@ import os
 from typing import Any
 
 from kvark_ros.io.common import PathLike
-from kvark_ros.io.reader import _open_reader, _resolve
+from kvark_ros.io.reader import open_reader, resolve_bag
 
 __all__ = ["bag_info"]
 
@@ -17,8 +17,8 @@ def bag_info(path: PathLike) -> dict[str, Any]:
     Returns {'path', 'storage' ('mcap'|'sqlite3'), 'start' s, 'end' s,
     'duration' s, 'message_count', 'topics': {topic: {'type', 'count'}}}.
     """
-    with _open_reader(path) as (given, reader):
-        target = _resolve(path)[1]
+    with open_reader(path) as (given, reader):
+        target = resolve_bag(path)[1]
         files = [target] if target.is_file() else list(target.iterdir())
         suffixes = {f.suffix for f in files}
         storage = "mcap" if ".mcap" in suffixes else "sqlite3" if ".db3" in suffixes else "unknown"

@@ -27,11 +27,11 @@ from kvark_ros.io.cdr_arrays import Layout, message_fields, windows
 from kvark_ros.io.common import (
     FLOAT64_ARRAY,
     JOINT_STATE,
+    NS_PER_SECOND,
     WRENCH_STAMPED,
-    _NS,
     FloatArray,
     PathLike,
-    _typestore,
+    typestore,
 )
 from kvark_ros.io.mcap_bulk import RawMessages, indexed_messages
 from kvark_ros.io.runs import (
@@ -43,7 +43,7 @@ from kvark_ros.io.runs import (
     SOURCE_KEY,
     TopicNames,
     WrenchSeries,
-    _error,
+    bag_error,
 )
 
 __all__ = ["read_run"]
@@ -54,11 +54,11 @@ Int64s = npt.NDArray[np.int64]
 Fields = dict[str, npt.NDArray[Any]]
 
 
-def _resolve(path: PathLike) -> tuple[Path, Path]:
+def resolve_bag(path: PathLike) -> tuple[Path, Path]:
     """Return (path as given, what rosbags should open): bag directory or storage file."""
     given = Path(path)
     if not given.exists():
-        raise _error(
+        raise bag_error(
             given, "no such bag", "check the path (a rosbag2 bag is a directory with metadata.yaml)"
         )
     if given.is_dir():
@@ -69,7 +69,7 @@ def _resolve(path: PathLike) -> tuple[Path, Path]:
             return given, files[0]
         problem = "is not a rosbag2 bag (no metadata.yaml"
         problem += f", {len(files)} storage files)" if files else ", no .mcap or .db3 file)"
-        raise _error(
+        raise bag_error(
             given,
             problem,
             "pass a bag directory or its .mcap/.db3 file "
@@ -78,7 +78,7 @@ def _resolve(path: PathLike) -> tuple[Path, Path]:
     if given.name == "metadata.yaml":
         return given, given.parent
     if given.suffix not in (".mcap", ".db3"):
-        raise _error(
+        raise bag_error(
             given,
             "is not a rosbag2 bag (expected a directory, .mcap or .db3)",
             "pass the bag directory",
@@ -89,7 +89,7 @@ def _resolve(path: PathLike) -> tuple[Path, Path]:
 def _corrupt(path: Path, exc: BaseException) -> BagError:
     """A read failure inside rosbags: the file is corrupt, truncated or not a bag."""
     if isinstance(exc, PermissionError):
-        return _error(path, "cannot read bag (permission denied)", "check the file permissions")
+        return bag_error(path, "cannot read bag (permission denied)", "check the file permissions")
     detail = str(exc) or type(exc).__name__
     is_mcap = any(path.glob("*.mcap")) if path.is_dir() else path.suffix == ".mcap"
     fix = (
@@ -97,13 +97,13 @@ def _corrupt(path: Path, exc: BaseException) -> BagError:
         if is_mcap
         else "re-record or re-export it"
     )
-    return _error(path, f"cannot read bag, it is corrupt or truncated ({detail})", fix)
+    return bag_error(path, f"cannot read bag, it is corrupt or truncated ({detail})", fix)
 
 
 @contextmanager
-def _open_reader(path: PathLike) -> Iterator[tuple[Path, Reader]]:
+def open_reader(path: PathLike) -> Iterator[tuple[Path, Reader]]:
     """Open a bag for reading; every rosbags failure becomes a BagError."""
-    given, target = _resolve(path)
+    given, target = resolve_bag(path)
     try:
         reader = Reader(target)
         reader.open()
@@ -158,14 +158,14 @@ class _Columns:
                        + (f" (also {missing[1:]})" if len(missing) > 1 else "") + f", whose messages name {key}")
         else:
             problem = f"joint {self._joints.repeated!r} is named twice in a message of {self.topic}: {key}"
-        raise _error(self.path, problem, "fix joint_names (or the config) to name joints the bag has")
+        raise bag_error(self.path, problem, "fix joint_names (or the config) to name joints the bag has")
 
 
 def _check_matched(path: Path, topic: str, columns: _Columns) -> None:
     """Raise if ``topic`` had messages but none named the run's joints."""
     seen = sorted({n for names in columns.seen for n in names})
     if seen:
-        raise _error(
+        raise bag_error(
             path,
             f"joints {list(columns.wanted)} are missing from {topic}, whose messages name {seen}",
             "fix joint_names (or the config) to name joints the bag has",
@@ -212,7 +212,7 @@ def _columns(values: FloatArray, idx: Index) -> FloatArray:
 
 def _stamp_ns(values: Fields) -> Int64s:
     """Header stamps in integer nanoseconds."""
-    return values["sec"][:, 0].astype(np.int64) * _NS + values["nanosec"][:, 0]
+    return values["sec"][:, 0].astype(np.int64) * NS_PER_SECOND + values["nanosec"][:, 0]
 
 
 class _JointStates:
@@ -237,7 +237,7 @@ class _JointStates:
             elif found.shape[1] == 0:
                 data[:, k * n:(k + 1) * n] = np.nan
             else:
-                raise _error(
+                raise bag_error(
                     self.path,
                     f"malformed message on {self.topic}: "
                     f"{found.shape[1]} {field_name} values for {count} names",
@@ -272,7 +272,7 @@ class _Commands:
         if idx is None:
             return
         if len(msg.effort) != len(msg.name):
-            raise _error(
+            raise bag_error(
                 self.path,
                 f"JointState on {self.topic} has {len(msg.effort)} effort values "
                 f"for {len(msg.name)} names",
@@ -293,7 +293,7 @@ class _Commands:
         elif data.shape[1] == len(self.wanted):
             self.rows.fill(members, log_ns, log_ns, data)
         else:
-            raise _error(
+            raise bag_error(
                 self.path,
                 f"{self.topic} has {data.shape[1]} values but the run has "
                 f"{len(self.wanted)} joints {list(self.wanted)}",
@@ -322,7 +322,7 @@ class _Wrenches:
         if self.frame_id is None:
             self.frame_id = frame
         elif frame != self.frame_id:
-            raise _error(
+            raise bag_error(
                 self.path,
                 f"{self.topic} mixes frames {self.frame_id!r} and {frame!r}",
                 "split the topic or re-record in one frame",
@@ -350,7 +350,7 @@ class _Failure(Exception):
 
 def _check_type(path: Path, topic: str, found: set[str], allowed: set[str]) -> None:
     if not found <= allowed:
-        raise _error(
+        raise bag_error(
             path,
             f"topic {topic} has type {'|'.join(sorted(found))}, "
             f"expected {' or '.join(sorted(allowed))}",
@@ -424,7 +424,7 @@ def _feed(path: Path, raw: RawMessages, rows: Index, kinds: Index, msgtypes: lis
     in groups of one layout (``cdr_arrays``), taken in the order of their first messages: rosbags decodes
     each group's first message, the rest of the group is decoded in bulk. The first ``MAX_LAYOUTS`` layouts
     are grouped; messages of further ones are decoded one by one. Errors are raised as ``_Failure``."""
-    store = _typestore()
+    store = typestore()
     size, log_ns = raw.size[rows], raw.log_ns[rows]
 
     def decode(k: int) -> tuple[bytes, str, Any]:
@@ -466,9 +466,9 @@ def _first_names(path: Path, raw: RawMessages, rows: Index, failures: list[_Fail
     if not len(rows) or any(failure.rank < rows[0] for failure in failures):
         if failures:
             raise min(failures, key=lambda failure: failure.rank).error
-        raise _error(path, f"topic {topic} has no messages", "record joint states in the bag")
+        raise bag_error(path, f"topic {topic} has no messages", "record joint states in the bag")
     try:
-        return tuple(_typestore().deserialize_cdr(raw.message(int(rows[0])), JOINT_STATE).name)
+        return tuple(typestore().deserialize_cdr(raw.message(int(rows[0])), JOINT_STATE).name)
     except Exception as exc:  # SerdeError
         raise _corrupt(path, exc) from exc
 
@@ -492,13 +492,13 @@ def read_run(
     """
     wanted = None if joint_names is None else tuple(str(n) for n in joint_names)
     if wanted is not None and (not wanted or len(set(wanted)) != len(wanted)):
-        raise _error(path, f"joint_names {list(wanted)} are empty or repeat", "fix the config")
-    with _open_reader(path) as (given, reader):
+        raise bag_error(path, f"joint_names {list(wanted)} are empty or repeat", "fix the config")
+    with open_reader(path) as (given, reader):
         types = _topic_types(reader)
         custom = getattr(getattr(getattr(reader, "storage", None), "metadata", None), "custom", None) or {}
         source = str(custom.get(SOURCE_KEY, ""))
         if topics.joint_states not in types:
-            raise _error(
+            raise bag_error(
                 given,
                 f"topic {topics.joint_states} is absent ({_describe_topics(types)})",
                 "record the joint states on /joint_states (remap the topic when recording)",
@@ -552,7 +552,7 @@ def read_run(
     assert isinstance(js_handler, _JointStates)
     joint_states = js_handler.result(wanted)
     if joint_states is None:
-        raise _error(
+        raise bag_error(
             given, f"topic {topics.joint_states} has no messages", "record joint states in the bag"
         )
     cmd = handlers.get(topics.effort_commands)

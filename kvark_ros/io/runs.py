@@ -36,7 +36,7 @@ class BagError(ValueError):
     """A bag cannot be read or written; the message names file, problem and fix."""
 
 
-def _error(path: PathLike, problem: str, fix: str) -> BagError:
+def bag_error(path: PathLike, problem: str, fix: str) -> BagError:
     """Build a one-line BagError: '<path>: <problem>; <fix>'."""
     text = f"{os.fspath(path)}: {problem}; {fix}"
     return BagError(" ".join(text.split()))

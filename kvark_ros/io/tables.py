@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from kvark_ros.io.common import FloatArray, PathLike
-from kvark_ros.io.runs import _error
+from kvark_ros.io.runs import bag_error
 
 __all__ = ["FORMATS", "Table", "read_table", "table_format"]
 
@@ -49,24 +49,24 @@ class Table:
         if name in self.columns:
             found = self.columns[name]
             if rows is not None and found.shape[0] != rows:
-                raise _error(self.path, f"column {name!r} has {found.shape[0]} samples, the time column {rows}",
-                             "map the columns of one recording")
+                raise bag_error(self.path, f"column {name!r} has {found.shape[0]} samples, the time column {rows}",
+                                "map the columns of one recording")
             return found
         why = f" ({name} is {self.skipped[name]})" if name in self.skipped else ""
-        raise _error(self.path, f"has no column {name!r}{why}; its columns are {self.describe()}",
-                     "fix the column names in the mapping (--mapping or the field flags)")
+        raise bag_error(self.path, f"has no column {name!r}{why}; its columns are {self.describe()}",
+                        "fix the column names in the mapping (--mapping or the field flags)")
 
 
 def table_format(path: PathLike, fmt: str | None = None) -> str:
     """``fmt`` if given, else the format the file's suffix says (``csv`` for .csv/.txt/.log/.tsv/.dat)."""
     if fmt is not None:
         if fmt not in FORMATS:
-            raise _error(path, f"unknown format {fmt!r}", f"use one of {', '.join(FORMATS)}")
+            raise bag_error(path, f"unknown format {fmt!r}", f"use one of {', '.join(FORMATS)}")
         return fmt
     suffix = Path(path).suffix.lower()
     if suffix not in _SUFFIXES:
-        raise _error(path, f"unknown file format (suffix {suffix or 'none'!r})",
-                     f"pass --format {'|'.join(FORMATS)} (suffixes: {', '.join(_SUFFIXES)})")
+        raise bag_error(path, f"unknown file format (suffix {suffix or 'none'!r})",
+                        f"pass --format {'|'.join(FORMATS)} (suffixes: {', '.join(_SUFFIXES)})")
     return _SUFFIXES[suffix]
 
 
@@ -75,7 +75,7 @@ def read_table(path: PathLike, fmt: str | None = None) -> Table:
     given = Path(path)
     kind = table_format(given, fmt)
     if not given.is_file():
-        raise _error(given, "no such file" if not given.exists() else "is not a file", "check the input path")
+        raise bag_error(given, "no such file" if not given.exists() else "is not a file", "check the input path")
     if kind == "csv":
         return _read_text(given)
     return _from_arrays(given, _load_npz(given) if kind == "npz" else _load_mat(given))
@@ -86,23 +86,23 @@ def _read_text(path: Path) -> Table:
     try:
         lines = path.read_text().splitlines()
     except UnicodeDecodeError as exc:
-        raise _error(path, "is not a text file", "pass --format npz or mat for binary files") from exc
+        raise bag_error(path, "is not a text file", "pass --format npz or mat for binary files") from exc
     except OSError as exc:
-        raise _error(path, f"cannot read it ({exc.strerror})", "check the file permissions") from exc
+        raise bag_error(path, f"cannot read it ({exc.strerror})", "check the file permissions") from exc
     numbered = [(k + 1, line) for k, line in enumerate(lines) if line.strip() and not line.lstrip().startswith("#")]
     if not numbered:
-        raise _error(path, "is empty (no header row)", "export the log with a header row naming the columns")
+        raise bag_error(path, "is empty (no header row)", "export the log with a header row naming the columns")
     header_line, header = numbered[0]
     delimiter = "," if "," in header else None
     names = [name.strip().strip('"').strip("'") for name in header.split(delimiter)]
     if not all(names):
-        raise _error(path, f"line {header_line}: the header has an empty column name", "name every column")
+        raise bag_error(path, f"line {header_line}: the header has an empty column name", "name every column")
     repeated = sorted({name for name in names if names.count(name) > 1})
     if repeated:
-        raise _error(path, f"line {header_line}: the header names {repeated[0]!r} twice", "name every column once")
+        raise bag_error(path, f"line {header_line}: the header names {repeated[0]!r} twice", "name every column once")
     body = numbered[1:]
     if not body:
-        raise _error(path, "has a header but no data rows", "export the log with its data")
+        raise bag_error(path, "has a header but no data rows", "export the log with its data")
     try:
         data = np.loadtxt(io.StringIO("\n".join(line for _, line in body)), delimiter=delimiter, ndmin=2)
         if data.shape[1] != len(names):
@@ -118,15 +118,15 @@ def _parse_cells(path: Path, body: list[tuple[int, str]], names: list[str], deli
     for row, (line_no, line) in enumerate(body):
         cells = line.split(delimiter)
         if len(cells) != len(names):
-            raise _error(path, f"line {line_no} has {len(cells)} fields, the header has {len(names)}",
-                         "fix the row or the header")
+            raise bag_error(path, f"line {line_no} has {len(cells)} fields, the header has {len(names)}",
+                            "fix the row or the header")
         for k, cell in enumerate(cells):
             text = cell.strip()
             try:
                 data[row, k] = float(text) if text else np.nan
             except ValueError:
-                raise _error(path, f"line {line_no}, column {names[k]!r}: {text!r} is not a number",
-                             "fix the cell or drop the row") from None
+                raise bag_error(path, f"line {line_no}, column {names[k]!r}: {text!r} is not a number",
+                                "fix the cell or drop the row") from None
     return data
 
 
@@ -141,7 +141,7 @@ def _load_npz(path: Path) -> dict[str, object]:
                     arrays[name] = None
             return arrays
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise _error(path, f"is not a readable NPZ file ({exc})", "save it with numpy.savez") from exc
+        raise bag_error(path, f"is not a readable NPZ file ({exc})", "save it with numpy.savez") from exc
 
 
 def _load_mat(path: Path) -> dict[str, object]:
@@ -151,10 +151,10 @@ def _load_mat(path: Path) -> dict[str, object]:
     try:
         found = loadmat(path)
     except NotImplementedError as exc:   # MATLAB -v7.3 files are HDF5
-        raise _error(path, "is a MATLAB v7.3 (HDF5) file", "save it with save(..., '-v7') or as CSV") from exc
+        raise bag_error(path, "is a MATLAB v7.3 (HDF5) file", "save it with save(..., '-v7') or as CSV") from exc
     except (MatReadError, OSError, ValueError, TypeError) as exc:
-        raise _error(path, f"is not a readable MAT file ({exc})",
-                     "save it with MATLAB's save or scipy.io.savemat") from exc
+        raise bag_error(path, f"is not a readable MAT file ({exc})",
+                        "save it with MATLAB's save or scipy.io.savemat") from exc
     return {name: value for name, value in found.items() if not name.startswith("__")}
 
 
@@ -177,6 +177,6 @@ def _from_arrays(path: Path, arrays: dict[str, object]) -> Table:
         else:
             skipped[name] = f"{array.ndim}-D with shape {array.shape}"
     if not columns:
-        raise _error(path, "holds no numeric vectors or matrices", "save the signals as numeric arrays")
+        raise bag_error(path, "holds no numeric vectors or matrices", "save the signals as numeric arrays")
     return Table(path, columns, skipped)
 

@@ -30,15 +30,15 @@ from kvark_ros.io.common import (
     BOOL,
     FLOAT64_ARRAY,
     JOINT_STATE,
+    NS_PER_SECOND,
     WRENCH_STAMPED,
-    _NS,
     FloatArray,
     PathLike,
-    _typestore,
+    typestore,
 )
 from kvark_ros.io.cdr_arrays import Layout
 from kvark_ros.io.mcap_bulk import McapStorage
-from kvark_ros.io.runs import SOURCE_KEY, RecordedRun, TopicNames, _error
+from kvark_ros.io.runs import SOURCE_KEY, RecordedRun, TopicNames, bag_error
 
 __all__ = ["BagWriter", "Messages", "bool_messages", "float64_array_messages", "joint_state_messages",
            "wrench_messages", "write_run", "write_run_messages"]
@@ -68,7 +68,7 @@ def _parse_storage(storage: str, path: Path) -> StoragePlugin:
     try:
         return _STORAGES[storage.lower()]
     except (KeyError, AttributeError):
-        raise _error(
+        raise bag_error(
             path, f"unknown bag storage {storage!r}", f"use one of {sorted(_STORAGES)}"
         ) from None
 
@@ -96,7 +96,7 @@ class BagWriter:
 
     def _check_target(self) -> None:
         if (self.path.exists() or self.path.is_symlink()) and not self.overwrite:
-            raise _error(
+            raise bag_error(
                 self.path, "output exists already", "pass overwrite=True or choose a new path"
             )
 
@@ -110,7 +110,7 @@ class BagWriter:
             parent.mkdir(parents=True, exist_ok=True)
             tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=parent))
         except OSError as exc:
-            raise _error(
+            raise bag_error(
                 self.path,
                 f"cannot create output ({exc.strerror})",
                 "check the directory and permissions",
@@ -162,7 +162,7 @@ class BagWriter:
             os.rename(built, target)
             return
         if not self.overwrite:
-            raise _error(
+            raise bag_error(
                 target, "output appeared while writing", "pass overwrite=True or choose a new path"
             )
         if target.is_dir() and not target.is_symlink():
@@ -205,7 +205,7 @@ class BagWriter:
         """The connection of ``topic`` (added at first use); a topic carries one message type."""
         entry = self._connections.get(topic)
         if entry is None:
-            conn = self._require_open().add_connection(topic, msgtype, typestore=_typestore())
+            conn = self._require_open().add_connection(topic, msgtype, typestore=typestore())
             entry = self._connections[topic] = (msgtype, conn)
         elif entry[0] != msgtype:
             raise ValueError(f"topic {topic} already carries {entry[0]}, cannot write {msgtype}")
@@ -295,7 +295,7 @@ def _messages(topic: str, msgtype: str, log_ns: npt.NDArray[np.int64], first: An
     """Messages like ``first`` (the first, as a rosbags message) with the numbers ``values`` (name → rows)."""
     if not len(log_ns):
         return Messages(topic, msgtype, log_ns, np.zeros((0, 0), dtype=np.uint8))
-    raw = bytes(_typestore().serialize_cdr(first, msgtype))
+    raw = bytes(typestore().serialize_cdr(first, msgtype))
     layout = Layout.read(raw, msgtype, first)
     assert layout is not None, f"{msgtype}: a message rosbags serialised must have a layout"
     return Messages(topic, msgtype, log_ns, layout.encode(values, len(log_ns)))
@@ -303,8 +303,8 @@ def _messages(topic: str, msgtype: str, log_ns: npt.NDArray[np.int64], first: An
 
 def _header(stamp_ns: npt.NDArray[np.int64], frame_id: str = "") -> tuple[Any, dict[str, npt.ArrayLike]]:
     """The first row's std_msgs/Header, and every row's stamp fields."""
-    types = _typestore().types
-    sec, nanosec = np.divmod(stamp_ns, _NS)
+    types = typestore().types
+    sec, nanosec = np.divmod(stamp_ns, NS_PER_SECOND)
     time = types["builtin_interfaces/msg/Time"](sec=int(sec[0]), nanosec=int(nanosec[0]))
     header = types["std_msgs/msg/Header"](stamp=time, frame_id=frame_id)
     return header, {"sec": sec[:, None], "nanosec": nanosec[:, None]}
@@ -328,8 +328,8 @@ def joint_state_messages(topic: str, stamp: FloatArray, names: Sequence[str], po
     if not len(ns):
         return _messages(topic, JOINT_STATE, ns, None, {})
     header, values = _header(ns)
-    first = _typestore().types[JOINT_STATE](header=header, name=names,
-                                             **{key: value[0] for key, value in fields.items()})
+    first = typestore().types[JOINT_STATE](header=header, name=names,
+                                            **{key: value[0] for key, value in fields.items()})
     return _messages(topic, JOINT_STATE, ns, first, {**values, **fields})
 
 
@@ -339,7 +339,7 @@ def wrench_messages(topic: str, stamp: FloatArray, frame_id: str, force: Any, to
     wrench = np.hstack((_rows(force, len(ns), 3, f"{topic} force"), _rows(torque, len(ns), 3, f"{topic} torque")))
     if not len(ns):
         return _messages(topic, WRENCH_STAMPED, ns, None, {})
-    types = _typestore().types
+    types = typestore().types
     header, values = _header(ns, str(frame_id))
     vec = types["geometry_msgs/msg/Vector3"]
     x, y, z, tx, ty, tz = map(float, wrench[0])
@@ -355,7 +355,7 @@ def float64_array_messages(topic: str, stamp: FloatArray, data: Any, names: Sequ
     values = _rows(data, len(ns), None if names is None else len(names), f"{topic} data")
     if not len(ns):
         return _messages(topic, FLOAT64_ARRAY, ns, None, {})
-    types = _typestore().types
+    types = typestore().types
     width = values.shape[1]
     dims = [] if names is None else [types["std_msgs/msg/MultiArrayDimension"](
         label=",".join(str(n) for n in names), size=width, stride=width)]
@@ -369,7 +369,7 @@ def bool_messages(topic: str, stamp: FloatArray, value: Any) -> Messages:
     flags = np.asarray(value, dtype=bool).reshape(len(ns), 1)
     if not len(ns):
         return _messages(topic, BOOL, ns, None, {})
-    return _messages(topic, BOOL, ns, _typestore().types[BOOL](data=bool(flags[0, 0])), {"data": flags})
+    return _messages(topic, BOOL, ns, typestore().types[BOOL](data=bool(flags[0, 0])), {"data": flags})
 
 
 def write_run(
@@ -414,6 +414,6 @@ def _stamps_ns(stamp: Any) -> npt.NDArray[np.int64]:
     stamp = np.asarray(stamp, dtype=np.float64).reshape(-1)
     bad = stamp[~(np.isfinite(stamp) & (stamp >= 0.0) & (stamp < 2.0**31))]
     ns = np.rint(stamp * 1e9).astype(np.int64) if not bad.size else np.zeros(0, dtype=np.int64)
-    if bad.size or (ns.size and ns.max() >= 2**31 * _NS):
+    if bad.size or (ns.size and ns.max() >= 2**31 * NS_PER_SECOND):
         raise ValueError(f"stamps must be finite and in [0, 2**31) s, got {bad[0] if bad.size else stamp.max()!r}")
     return ns

@@ -55,7 +55,8 @@ class StatusBuilder:
     def model(self, config: Any, urdf_in_use: str, estimator: Any, problem: str,
               reload_problem: str | None, data_rate: float = math.nan) -> DiagnosticStatus:
         """ERROR without an estimator (``problem`` says why), WARN after a failed reload or when the model does not
-        fit the data (``core.estimation.model_checks``: rate ``data_rate`` Hz off by more than 20 %, another robot), else OK."""
+        fit the data (``core.estimation.model_checks``: rate ``data_rate`` Hz off by more than 20 %, another robot),
+        else OK."""
         payload = config.payload
         values = {"model_dir": config.model_dir, "observer": config.observer, "urdf": urdf_in_use or config.urdf,
                   "joints": ",".join(config.joint_names), "torque_source": config.input.torque_source,

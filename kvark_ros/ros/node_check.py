@@ -26,6 +26,7 @@ import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import rclpy
@@ -45,6 +46,9 @@ from kvark_ros.core.estimation.robot_model import urdf_sha256
 from kvark_ros.io.alignment import read_inputs
 from kvark_ros.ros.player import BagPlayer, playback_rate, read_recording
 from kvark_ros.tools.replay import run_observer
+
+if TYPE_CHECKING:
+    from kvark_ros.cli import SubParsers
 
 TOLERANCE = 1e-9            # N·m: the node and replay run the same code on the same numbers
 DOMAIN_RANGE = (101, 200)   # ROS_DOMAIN_ID drawn from here (Fast DDS allows at most 232)
@@ -290,7 +294,7 @@ def summary(figures: dict) -> str:
             f"[node-check] {'MATCH: the node equals replay on every sample' if passed(figures) else 'MISMATCH'}")
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "node-check", help="run the ROS 2 node on a bag over loopback DDS and compare it with replay (rclpy)",
         description="Start the estimator node as a process (as shipped, on a ROS domain of its own restricted to "

@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import rclpy
@@ -27,6 +28,9 @@ from std_msgs.msg import Float64MultiArray
 
 from kvark_ros.core.config import load_config
 from kvark_ros.io import BagError, TopicNames
+
+if TYPE_CHECKING:
+    from kvark_ros.cli import SubParsers
 
 NODE_NAME = "kvark_player"
 MESSAGE_TYPES = {"sensor_msgs/msg/JointState": JointState, "std_msgs/msg/Float64MultiArray": Float64MultiArray}
@@ -132,7 +136,7 @@ def playback_rate(text: str) -> float:
     return rate
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "play", help="publish a bag's joint states and effort commands to ROS 2 (rclpy)",
         description="Publish the joint states and effort commands of a ROS 2 bag (MCAP or sqlite3) on the config's "

@@ -4,8 +4,8 @@ Trains a residual model on a synthetic free-motion stream of the configured robo
 directory, ``--model``: a real robot's with its residual inputs and augmentation), then steps a fresh Estimator
 per observer over a synthetic stream with a step external torque, timing each ``Estimator.step`` call. Every
 observer gets a row (the oracle needs a plant file and is left out); its ``kernel`` column says whether its
-step ran compiled (``filter.kernel: numba`` compiles the K-VARK family: kvark, its ablations, gmr_gp, gpadkf,
-nnadkf) or as numpy. The last printed line is one JSON object.
+step ran compiled (numba: the momentum-form K-VARK family, kvark, its ablations, gmr_gp, gpadkf, nnadkf) or as
+numpy (the difference form, the residual-free observers). The last printed line is one JSON object.
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import argparse
 import gc
 import json
 import time
-from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,11 +24,14 @@ from kvark_ros.core.estimation.observers import LEARNED_BASELINE_VARIANTS, make_
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream, train_synthetic
 
+if TYPE_CHECKING:
+    from kvark_ros.cli import SubParsers
+
 WARM_UP_STEPS = 500
 BENCH_OBSERVERS = tuple(name for name in OBSERVER_NAMES if name != "oracle")   # the oracle needs a plant file
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "bench", help="per-step latency of the estimator on a synthetic stream",
         description="Step the Estimator on a synthetic stream of the robot (known friction, a step "
@@ -44,9 +47,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--model", help="time this trained model directory (its residual inputs, augmentation, band "
                                         "and interval factors) instead of one trained on the synthetic stream; the "
                                         "RMSE column then compares it with the synthetic plant, not its own robot")
-    parser.add_argument("--kernel", choices=("numpy", "numba"),
-                        help="implementation of Estimator.step with a K-VARK filter (filter.kernel; default: the "
-                             "config's)")
     parser.set_defaults(run=run)
 
 
@@ -58,8 +58,6 @@ def run(args: argparse.Namespace) -> int:
     if args.duration <= 0:
         raise SystemExit("kvark bench: --duration must be positive")
     config = load_config(args.config or default_config_path(args.robot))
-    if args.kernel:
-        config = replace(config, filter=replace(config.filter, kernel=args.kernel))
     if args.model:
         trained = load_model(args.model, config.joint_names)
         robot = RobotModel.from_config(config, trained.augmentation)
@@ -87,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{name:<12} {row['kernel']:>6} {row['steps']:>6} {row['p50_us']:>8.1f} {row['p99_us']:>8.1f} "
               f"{row['max_us']:>8.1f} {row['rmse_nm']:>9.4f}", flush=True)
     first = results[names[0]]
-    summary = {"robot": config.robot, "observer": names[0], "kernel": config.filter.kernel, "steps": first["steps"],
+    summary = {"robot": config.robot, "observer": names[0], "kernel": first["kernel"], "steps": first["steps"],
                "p50_us": first["p50_us"], "p99_us": first["p99_us"], "observers": results}
     print(json.dumps(summary))
     return 0

@@ -33,6 +33,8 @@ from kvark_ros.tools.report import metrics_table
 if TYPE_CHECKING:
     from distributed import Client
 
+    from kvark_ros.cli import SubParsers
+
 TEST_SCENARIOS = ("payload", "contact", "collision")
 ABLATIONS = ("kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "kvark")
 AUGMENTED_OBSERVERS = ("kvark", "kf", "momentum")
@@ -191,7 +193,7 @@ def augmentation_section(results: Mapping[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "benchmark", help="simulate, train and compare every observer (writes results.json and report.md)",
         description="Simulate training bags (excitation) and test bags (payload, contact, collision), train, "

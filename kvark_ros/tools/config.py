@@ -7,12 +7,16 @@ and path resolution, defaults filled in: what the node, train and replay will ru
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
 from kvark_ros.core.config import load_config
 from kvark_ros.core.config_schema import KEYS, Key, keys_table
 
+if TYPE_CHECKING:
+    from kvark_ros.cli import SubParsers
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser("config", help="print a config's validated settings, or every key (--keys)",
                                    description=__doc__.split("\n\n")[1])
     parser.add_argument("file", nargs="?", help="config YAML (the node's parameter file)")

@@ -51,6 +51,8 @@ from kvark_ros.tools.replay import GroundTruth, ObserverRun, bag_fields, ground_
 if TYPE_CHECKING:
     from distributed import Client
 
+    from kvark_ros.cli import SubParsers
+
 TRUTHS = {"bag": "auto", "zero": "zero"}     # --ground-truth -> replay's ground-truth kind (no reference bag here)
 BLAS_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 CONNECT_TIMEOUT = 10.0     # s to reach a --scheduler, and for a worker to join it
@@ -288,7 +290,7 @@ def expand_bags(patterns: Sequence[str]) -> list[str]:
     return bags
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "evaluate", help="run many bags through observers on a Dask cluster; one table of every bag's metrics",
         description="Run every bag × observer as one task on a Dask cluster (a local one by default: one worker "

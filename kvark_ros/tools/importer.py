@@ -19,6 +19,7 @@ import argparse
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -29,6 +30,9 @@ from kvark_ros.io import (BagError, CommandSeries, JointStateSeries, RecordedRun
 from kvark_ros.io.common import FloatArray
 from kvark_ros.io.tables import FORMATS, Table, read_table, table_format
 from kvark_ros.tools.import_mapping import FIELDS, TIME_UNITS, Mapping, merge_flags, parse_mapping
+
+if TYPE_CHECKING:
+    from kvark_ros.cli import SubParsers
 
 _FLAG_TOPICS = {"joint_states_topic": "joint_states", "effort_commands_topic": "effort_commands",
                 "wrench_topic": "wrench", "external_torque_topic": "external_torque"}
@@ -196,7 +200,7 @@ def _flags(args: argparse.Namespace) -> dict[str, object]:
     return flags
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "import", help="convert a robot log (CSV/text, NPZ, MAT) into a ROS 2 bag",
         description=__doc__.split("\n\n")[1].replace("``", ""), formatter_class=argparse.RawDescriptionHelpFormatter,

@@ -19,20 +19,19 @@ import argparse
 import os
 import re
 import tempfile
-import textwrap
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import pinocchio as pin
-import yaml
 
-from kvark_ros.core.config import EXAMPLE_ROBOT_DATA_PREFIX, NODE_NAME, ConfigError, load_config
-from kvark_ros.core.config_schema import KEYS, Key
+from kvark_ros.core.config import EXAMPLE_ROBOT_DATA_PREFIX, ConfigError, load_config
+from kvark_ros.core.config_schema import ConfigDocument, comment_lines, config_text
 from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.estimation.robot_model import RobotModel, resolve_urdf
 from kvark_ros.tools.xacro_files import expand_xacro, parse_assignments
 
-_WIDTH = 110
+if TYPE_CHECKING:
+    from kvark_ros.cli import SubParsers
 
 
 def _joint_path(model: pin.Model, joint: int) -> list[int]:
@@ -119,54 +118,6 @@ def choose_joints_and_frames(model: pin.Model, joints: list[str] | None, ee_fram
     return names, ee_frame, _frame(model, flange_frame, "--flange-frame", last), notes
 
 
-def _yaml(value: Any, indent: int) -> str:
-    """One value in YAML flow style, strings quoted only when needed; a long list continues on lines indented
-    to its opening bracket (``indent``: the bracket's column)."""
-    text = yaml.safe_dump([value], default_flow_style=True, allow_unicode=True, width=10**6).strip()[1:-1]
-    if not isinstance(value, list) or indent + len(text) <= _WIDTH:
-        return text
-    lines = textwrap.wrap(text[1:-1], _WIDTH - indent - 2, break_on_hyphens=False, break_long_words=False)
-    return "[" + f"\n{' ' * (indent + 1)}".join(lines) + "]"
-
-
-def _comment(key: Key, note: str | None, indent: str) -> list[str]:
-    text = f"{key.meaning}. Allowed: {key.allowed}."
-    if key.runtime:
-        text += " Can be changed while the node runs."
-    if note:
-        text += f" {note}"
-    return textwrap.wrap(text, _WIDTH - len(indent) - 2, initial_indent=f"{indent}# ",
-                         subsequent_indent=f"{indent}# ", break_on_hyphens=False)
-
-
-def config_text(values: dict[str, Any], notes: dict[str, str], header: list[str]) -> str:
-    """The config file: ``header`` comment lines, then every key of KEYS (``values`` over the defaults)."""
-    tree: dict[str, Any] = {}
-    for key in KEYS:
-        *groups, leaf = key.name.split(".")
-        node = tree
-        for group in groups:
-            node = node.setdefault(group, {})
-        node[leaf] = key
-    lines = [f"# {line}" if line else "#" for line in header] + [f"{NODE_NAME}:", "  ros__parameters:"]
-
-    def emit(node: dict[str, Any], depth: int) -> None:
-        indent = "  " * depth
-        for position, (name, item) in enumerate(node.items()):
-            if depth == 2 and position:
-                lines.append("")
-            if isinstance(item, dict):
-                lines.append(f"{indent}{name}:")
-                emit(item, depth + 1)
-                continue
-            value = values.get(item.name, item.default)
-            lines.extend(_comment(item, notes.get(item.name), indent))
-            lines.append(f"{indent}{name}: {_yaml(value, len(indent) + len(name) + 2)}")
-
-    emit(tree, 2)
-    return "\n".join(lines) + "\n"
-
-
 def config_relative(target: Path, folder: Path) -> str:
     """A path as the config writes it: relative to its folder when under that folder's parent, else absolute."""
     target, folder = target.resolve(), folder.resolve()
@@ -207,7 +158,7 @@ def _check(text: str, out: Path) -> None:
         os.unlink(name)
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser("init", help="write a commented config for a new robot from its URDF or xacro",
                                    description=__doc__.split("\n\n")[1].replace("``", ""),
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -254,11 +205,14 @@ def run(args: argparse.Namespace) -> int:
     header = [f"kvark_ros estimator configuration: {args.robot} ({len(names)} joints), written by `kvark init`.",
               "The same file is the ROS 2 node's parameter file and the config of `kvark import`, `kvark diagnose`,",
               "`kvark train` and `kvark replay`. Units are SI (rad, rad/s, N·m, N, s). Nested groups become dotted",
-              "ROS parameter names, e.g. filter.ewma_rate. Keys, defaults and meanings come from",
-              "kvark_ros/core/config_schema.py (`kvark config --keys` prints them all).",
+              "ROS parameter names, e.g. filter.ewma_time. Each key's first comment lines are its row of the key",
+              "table (kvark_ros/core/config_schema.py; `kvark config --keys` prints them all);",
+              "`python -m kvark_ros.core.config_schema --write-configs FILE` rewrites them, keeping the values",
+              "and the notes after a lone '#'.",
               "Relative paths (robot_model.urdf, residual_model.model_dir, model_augmentation) are relative to",
               "this file's folder."]
-    text = config_text(values, notes, header)
+    text = config_text(ConfigDocument(header=[f"# {line}" if line else "#" for line in header], values=values,
+                                      notes={key: comment_lines(note, key) for key, note in notes.items() if note}))
     out.parent.mkdir(parents=True, exist_ok=True)
     _check(text, out)
     if expanded is not None:

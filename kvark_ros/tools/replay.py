@@ -17,7 +17,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
@@ -35,6 +35,9 @@ from kvark_ros.io import (BagError, BagWriter, RecordedRun, bool_messages, float
 from kvark_ros.io.alignment import read_inputs
 from kvark_ros.tools.reference import align_reference, interpolate
 from kvark_ros.tools.metrics import mahalanobis_rows, observer_metrics
+
+if TYPE_CHECKING:
+    from kvark_ros.cli import SubParsers
 
 OUTPUT_PREFIX = "/kvark"
 
@@ -322,7 +325,7 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
     return metrics
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "replay", help="run a bag through observers; write an output bag, metrics, plots and a report",
         description="Replay a ROS 2 bag through one or more observers with the same Estimator the ROS node "

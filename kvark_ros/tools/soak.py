@@ -27,7 +27,7 @@ import time
 import traceback
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -37,6 +37,9 @@ from kvark_ros.core.estimation.model_store import TrainedModel
 from kvark_ros.core.estimation.observers import LEARNED_BASELINE_VARIANTS, make_observer
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.tools.synthetic import synthetic_stream
+
+if TYPE_CHECKING:
+    from kvark_ros.cli import SubParsers
 
 RATE = 500.0                 # Hz, sample rate of the synthetic stream
 SEGMENT_SECONDS = 20.0       # length of the replayed free-motion segment
@@ -57,7 +60,7 @@ EXPECTED_STATUS = {NAN: Status.NON_FINITE, INF: Status.NON_FINITE, OUT_OF_ORDER:
 FAULT_RATES = {NAN: 1e-3, INF: 2e-4, OUT_OF_ORDER: 5e-4, DUPLICATE: 2e-4, BAD_SHAPE: 1e-4, GAP: 3e-4}
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "soak", help="long faulty run of the estimator: NaN, crashes, covariance SPD, memory",
         description="Step the Estimator on a long synthetic stream with contacts, gaps longer than "

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from kvark_ros.core.estimation.augmentation import load_augmentation
 from kvark_ros.core.config import EstimatorConfig, load_config
@@ -19,6 +20,9 @@ from kvark_ros.core.estimation.residual.common import available_cores
 from kvark_ros.core.estimation.robot_model import RobotModel, urdf_sha256
 from kvark_ros.core.learning.training import INPUT_MODES, train_model
 from kvark_ros.io.alignment import load_recordings
+
+if TYPE_CHECKING:
+    from kvark_ros.cli import SubParsers
 
 
 def sha256_file(path: Path) -> str:
@@ -47,7 +51,7 @@ def positive_int(text: str) -> int:
     return value
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "train", help="train the residual models and filter tuning from contact-free bags",
         description="Read contact-free ROS 2 bags (MCAP or sqlite3), compute the residual torque τ_m − τ_EL "

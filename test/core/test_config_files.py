@@ -1,12 +1,17 @@
 """The shared configuration: shipped files load, bad keys and values are named."""
 from __future__ import annotations
 
+import dataclasses
+import typing
 from pathlib import Path
 
 import pytest
 import yaml
 
-from kvark_ros.core.config import ConfigError, load_config
+from kvark_ros.core.config import ConfigError, EstimatorConfig, FilterSettings, load_config
+from kvark_ros.core.config_schema import (KEYS, KEYS_BY_NAME, comment_lines, describe, parse_config_text,
+                                          regenerated_config_text)
+from kvark_ros.core.settings import SETTINGS_BY_GROUP
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -63,6 +68,17 @@ def test_unknown_key_is_refused_with_its_dotted_name(tmp_path):
         load_config(write(tmp_path, parameters))
 
 
+@pytest.mark.parametrize("value", ["numpy", "numba"])
+def test_the_removed_kernel_key_says_the_step_is_always_compiled(tmp_path, value):
+    """filter.kernel (numpy or numba) is gone: one error line saying so, not 'unknown key'."""
+    parameters = base_parameters()
+    parameters["filter"]["kernel"] = value
+    with pytest.raises(ConfigError, match=r"key 'filter\.kernel' was removed: the momentum-form K-VARK step is "
+                                          r"always compiled") as error:
+        load_config(write(tmp_path, parameters))
+    assert "\n" not in str(error.value)
+
+
 def test_missing_required_key_is_named(tmp_path):
     parameters = base_parameters()
     del parameters["robot_model"]["joint_names"]
@@ -89,3 +105,45 @@ def test_overrides_and_payload(tmp_path):
     config = load_config(write(tmp_path, parameters), observer="kf")
     assert config.observer == "kf" and config.payload.mass == 1.5
 
+
+
+def test_settings_groups_are_typed_frozen_dataclasses_with_the_table_defaults():
+    hints = typing.get_type_hints(FilterSettings)
+    assert hints["vb_variant"] == typing.Literal["paper", "huang", "smoothed", "window"]
+    assert hints["vb_iterations"] is int and hints["ewma_time"] is float
+    assert typing.get_type_hints(EstimatorConfig)["joint_names"] == tuple[str, ...]
+    for group, settings in SETTINGS_BY_GROUP.items():
+        defaults = settings()
+        assert all(getattr(defaults, key.attr) == key.default for key in KEYS if key.group == group), group
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        FilterSettings().ewma_time = 1.0  # type: ignore[misc]
+    config = load_config(ROOT / "config" / "panda.yaml")
+    assert type(config.filter) is FilterSettings and config.n_joints == 7
+
+
+def test_regenerating_a_config_rewrites_key_comments_and_keeps_values_notes_and_prose():
+    """A stale table comment is replaced, a missing key is written with its default, the rest stays."""
+    text = (ROOT / "config" / "ur5.yaml").read_text()
+    key = KEYS_BY_NAME["filter.ewma_time"]
+    table_comment = "\n".join(f"      {line}" for line in comment_lines(describe(key), key.name))
+    assert table_comment in text
+    note = "      #\n      # A note of this file.\n"
+    edited = (text.replace(table_comment, "      # an old meaning of the key")
+              .replace("      vb_iterations: 1\n", "      vb_iterations: 3\n")
+              .replace("      max_gap: 0.05\n", f"{note}      max_gap: 0.05\n"))
+    topic = KEYS_BY_NAME["input.wrench_topic"]                         # a key without a note: as a new row
+    assert topic.name not in parse_config_text(text).notes
+    topic_lines = "".join(f"      {line}\n" for line in [*comment_lines(describe(topic), topic.name),
+                                                          "wrench_topic: /ft_sensor/wrench"])
+    edited = edited.replace(topic_lines, "")
+    assert "wrench_topic" not in edited and "an old meaning" in edited
+    expected = text.replace("      vb_iterations: 1\n", "      vb_iterations: 3\n").replace(
+        "      max_gap: 0.05\n", f"{note}      max_gap: 0.05\n")
+    assert regenerated_config_text(edited) == expected
+    assert "onset_threshold: 0.0" in expected and "Off on the UR5" in expected     # the robot's own value and note
+
+
+def test_regenerating_refuses_a_file_with_an_unknown_key():
+    text = (ROOT / "config" / "panda.yaml").read_text().replace("      ewma_time: 0.2\n", "      ewma_rate: 0.01\n")
+    with pytest.raises(ValueError, match="unknown key 'filter.ewma_rate'"):
+        regenerated_config_text(text)

@@ -1,4 +1,7 @@
-"""K-VARK and its ablations: equations, convergence on a synthetic arm, long-run health of P."""
+"""K-VARK and its ablations: equations, convergence on a synthetic arm, long-run health of P.
+
+The momentum form's equations run in both its implementations: the compiled filter (``KVARKKernelFilter``, the
+production step) and the numpy reference (``ReferenceMomentumFilter``, reference_filter.py)."""
 from __future__ import annotations
 
 import importlib
@@ -10,11 +13,18 @@ import pytest
 from kvark_ros.core.estimation.estimator import Estimator
 from kvark_ros.core.observer_catalog import OBSERVERS
 from kvark_ros.core.estimation.observers import OBSERVER_NAMES, FilterTuning, ObserverError, make_observer
-from kvark_ros.core.estimation.observers.kvark_filter import VARIANTS, KVARKFilter, kalman_update
+from kvark_ros.core.estimation.kernel_layouts import Option
+from kvark_ros.core.estimation.observers.kvark_filter import VARIANTS, KVARKFilter, Variant, kalman_update
+from kvark_ros.core.estimation.observers.kvark_kernel import KVARKKernelFilter
+from kvark_ros.core.estimation.observers.momentum_noise import MomentumNoise
 from kvark_ros.core.estimation.residual import GMRReference, KMPHyperparameters, KMPResidualModel
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream
 
+from reference_filter import ReferenceMomentumFilter
+
 STEP = np.array([3.0, -2.0, 1.5, 2.0, -1.0, 0.8, 0.5])    # N·m, switched on at t = 2 s
+# The momentum form's two implementations: the compiled one (production) and the numpy reference (the oracle).
+MOMENTUM_FORMS = {"kernel": KVARKKernelFilter, "reference": ReferenceMomentumFilter}
 
 
 def flat_residual(n: int, variance: float = 0.01) -> KMPResidualModel:
@@ -56,7 +66,8 @@ def test_virtual_measurement_sign_gives_torque_acting_on_the_robot(panda_config)
     assert np.allclose(x, tau_ext, atol=1e-3)
 
 
-FORMS = [("momentum", "smoothed"), ("momentum", "paper"), ("momentum", "window"), ("difference", "paper"), ("difference", "huang")]
+FORMS = [("momentum", "smoothed"), ("momentum", "paper"), ("momentum", "window"), ("difference", "paper"),
+         ("difference", "huang")]
 
 
 @pytest.mark.parametrize("name, measurement, vb_variant",
@@ -84,21 +95,18 @@ def test_observers_converge_to_a_step_external_torque(panda, panda_config, panda
     assert np.mean(np.abs(estimates[rise][-1] - STEP)) < 0.3 * np.mean(np.abs(STEP))
 
 
-@pytest.mark.parametrize("measurement, vb_variant, steps", [("difference", "paper", 100_000),
-                                                           ("difference", "huang", 20_000),
-                                                           ("momentum", "smoothed", 100_000),
-                                                           ("momentum", "paper", 20_000),
-                                                           ("momentum", "window", 20_000)])
+@pytest.mark.parametrize("measurement, vb_variant, steps, form",
+                         [("difference", "paper", 100_000, None), ("difference", "huang", 20_000, None)]
+                         + [(*case, form) for case in [("momentum", "smoothed", 100_000), ("momentum", "paper", 20_000),
+                                                       ("momentum", "window", 20_000)] for form in MOMENTUM_FORMS])
 def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_config, rng, measurement, vb_variant,
-                                                                     steps):
-    from kvark_ros.core.estimation.observers.kvark_momentum import KVARKMomentumFilter
-    from kvark_ros.core.estimation.observers.momentum_noise import MomentumNoise
+                                                                     steps, form):
     config = replace(panda_config.filter, measurement=measurement, vb_variant=vb_variant)
     if measurement == "difference":
         observer = KVARKFilter("kvark", flat_residual(7), tuning(7), config)
     else:
         tuned = replace(tuning(7), residual_variance=np.full(7, 0.01))
-        observer = KVARKMomentumFilter("kvark", flat_residual(7), tuned, MomentumNoise.default(7), config)
+        observer = MOMENTUM_FORMS[form]("kvark", flat_residual(7), tuned, MomentumNoise.default(7), config)
     p_prev, u = np.zeros(7), np.zeros(7)
     for k in range(steps):
         burst = 50.0 if (k // 5000) % 2 else 0.0          # contact on and off
@@ -150,12 +158,12 @@ def test_unknown_observer_is_refused(panda_config):
 
 
 def test_smoothed_vb_statistic_equals_the_matrix_rts_smoother(panda_config, rng):
-    """The closed form of E[(τ_k − τ_{k−1})² | y_1:k] equals the lag-one RTS smoother in matrix form."""
-    from kvark_ros.core.estimation.observers.kvark_momentum import KVARKMomentumFilter
-    from kvark_ros.core.estimation.observers.momentum_noise import MomentumNoise
+    """The closed form of E[(τ_k − τ_{k−1})² | y_1:k] equals the lag-one RTS smoother in matrix form (on the
+    reference's ``_smoothed_increment``; the kernel's equals it to rounding, test_compiled_step_matches_reference)."""
     from kvark_ros.core.estimation.observers.momentum_observers import joseph_update
     tuning_ = FilterTuning(np.full(1, 5.0), np.full(1, 0.05), np.full(1, 0.02), np.full(1, 0.01))
-    observer = KVARKMomentumFilter("kvark", flat_residual(1), tuning_, MomentumNoise.default(1), panda_config.filter)
+    observer = ReferenceMomentumFilter("kvark", flat_residual(1), tuning_, MomentumNoise.default(1),
+                                       panda_config.filter)
     h = 0.002
     F, H = np.array([[1.0, h], [0.0, 1.0]]), np.array([[1.0, 0.0]])
     for _ in range(20):
@@ -194,23 +202,24 @@ def _random_walk_run(observer, n: int, h: float, density: float, R: float, steps
         yield k
 
 
-def _window_filter(panda_config, n: int, q0: float, R: float, variant: str = "window", **settings):
-    from kvark_ros.core.estimation.observers.kvark_momentum import KVARKMomentumFilter
-    from kvark_ros.core.estimation.observers.momentum_noise import MomentumNoise
+def _window_filter(panda_config, n: int, q0: float, R: float, variant: str = "window", form: str = "reference",
+                   **settings):
+    """The momentum-form kvark filter in ``form`` (a key of ``MOMENTUM_FORMS``)."""
     tuning_ = FilterTuning(np.full(n, 5.0), np.full(n, 0.05), np.full(n, 0.02), np.full(n, 1e-4))
     noise = MomentumNoise(np.full(n, R), np.full(n, q0), np.full(n, 1e-8))
     config = replace(panda_config.filter, measurement="momentum", vb_variant=variant, vb_window_time=0.05,
                      vb_prior_dof=1.0, vb_memory=0.2, **settings)
-    return KVARKMomentumFilter("kvark", flat_residual(n, 1e-4), tuning_, noise, config)
+    return MOMENTUM_FORMS[form]("kvark", flat_residual(n, 1e-4), tuning_, noise, config)
 
 
+@pytest.mark.parametrize("form", MOMENTUM_FORMS)
 @pytest.mark.parametrize("variant", ["window", "smoothed"])
-def test_window_vb_process_noise_grows_after_a_step_and_returns_to_the_prior(panda_config, rng, variant):
+def test_window_vb_process_noise_grows_after_a_step_and_returns_to_the_prior(panda_config, rng, variant, form):
     """A step in τ_ext at 2 s: the windowed VB statistic raises Σ_d by orders of magnitude within
     0.1 s and brings it back to the prior once τ_ext is constant again; the lag-one statistic
     (smoothed) cannot see one step's increment through the momentum and leaves Σ_d at the prior."""
     n, h, q0, R = 3, 0.002, 0.05, 1e-6
-    observer = _window_filter(panda_config, n, q0, R, variant)
+    observer = _window_filter(panda_config, n, q0, R, variant, form)
     step = np.array([3.0, -2.0, 1.0])
     p_true, p_prev, u = np.zeros(n), np.zeros(n), np.zeros(n)
     ratio = []
@@ -230,23 +239,26 @@ def test_window_vb_process_noise_grows_after_a_step_and_returns_to_the_prior(pan
         assert np.all(ratio[1000:1050].max(axis=0) < 1.5)
 
 
-def test_window_vb_learns_the_density_of_a_random_walk(panda_config, rng):
+@pytest.mark.parametrize("form", MOMENTUM_FORMS)
+def test_window_vb_learns_the_density_of_a_random_walk(panda_config, rng, form):
     """τ_ext a random walk 100× faster than the prior: the learned density is the true one, shrunk
     toward the prior by its weight (ν_0 = 1 against ~4 forgotten windows: about 0.8 of the truth)."""
     n, h, q0, R = 3, 0.002, 0.05, 1e-6
-    observer = _window_filter(panda_config, n, q0, R)
+    observer = _window_filter(panda_config, n, q0, R, form=form)
     q_true = 100.0 * q0
-    learned = [observer.window.q for k in _random_walk_run(observer, n, h, q_true, R, 5000, rng) if k >= 1000]
+    learned = [observer.window.q.copy() for k in _random_walk_run(observer, n, h, q_true, R, 5000, rng) if k >= 1000]
     ratio = np.mean(learned, axis=0) / q_true
     assert np.all((ratio > 0.6) & (ratio < 1.0))
 
 
-def test_window_vb_state_covariances_match_the_augmented_matrix_filter(panda_config, rng):
+@pytest.mark.parametrize("form", MOMENTUM_FORMS)
+def test_window_vb_state_covariances_match_the_augmented_matrix_filter(panda_config, rng, form):
     """The snapshot bookkeeping (Cov(p, z), Cov(τ, z), Var z) equals a 3-state KF on [p, τ, z]."""
     h, q0, R = 0.002, 0.05, 1e-6
-    observer = _window_filter(panda_config, 1, q0, R)
-    from kvark_ros.core.estimation.observers.kvark_filter import Variant
+    observer = _window_filter(panda_config, 1, q0, R, form=form)
     observer.variant = Variant(heteroscedastic=False, ewma=False, nis=False, vb=True)   # fixed R and Σ_*
+    if form == "kernel":                                    # the compiled filter reads the variant from its options
+        observer.options[Option.HETEROSCEDASTIC] = observer.options[Option.EWMA] = 0
     F = np.array([[1.0, h, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     x, P = None, None
     p_prev, u = np.zeros(1), np.zeros(1)
@@ -278,8 +290,8 @@ def test_window_vb_state_covariances_match_the_augmented_matrix_filter(panda_con
         p_prev = p
 
 
-def _onset_filter(panda_config, n: int, threshold: float):
-    return _window_filter(panda_config, n, 0.05, 1e-6, onset_threshold=threshold, onset_window_time=0.02)
+def _onset_filter(panda_config, n: int, threshold: float, form: str):
+    return _window_filter(panda_config, n, 0.05, 1e-6, form=form, onset_threshold=threshold, onset_window_time=0.02)
 
 
 def _step_response(observer, rng, step: np.ndarray, noise: float, steps: int = 1500, h: float = 0.002,
@@ -296,11 +308,12 @@ def _step_response(observer, rng, step: np.ndarray, noise: float, steps: int = 1
     return np.array(taus)
 
 
-def test_onset_glr_estimates_a_noise_free_jump_exactly(panda_config, rng):
+@pytest.mark.parametrize("form", MOMENTUM_FORMS)
+def test_onset_glr_estimates_a_noise_free_jump_exactly(panda_config, rng, form):
     """Without noise the innovations are exactly the jump's signature ρ_k Δ, so the GLR's Δ̂ is
     the jump and the corrected τ̂ equals the true τ_ext at the alarm, on every joint."""
     step = np.array([5.0, -3.0])
-    observer = _onset_filter(panda_config, 2, 60.0)
+    observer = _onset_filter(panda_config, 2, 60.0, form)
     taus = _step_response(observer, rng, step, noise=0.0)
     assert observer.onset.alarms == 2
     alarm = np.flatnonzero(np.abs(taus[:, 0] - step[0]) < 1e-6)[0]
@@ -308,14 +321,15 @@ def test_onset_glr_estimates_a_noise_free_jump_exactly(panda_config, rng):
     assert np.allclose(taus[alarm], step, atol=1e-6)
 
 
-def test_onset_detector_tracks_a_step_much_faster(panda_config, rng):
+@pytest.mark.parametrize("form", MOMENTUM_FORMS)
+def test_onset_detector_tracks_a_step_much_faster(panda_config, rng, form):
     """A 5 N·m step with momentum noise σ = 1e-3 N·m·s: with the detector the estimate is within
     10 % of the step within 10 ms; without, the filter (window VB included) needs several times longer
     and its error over the first 100 ms is several times larger."""
     step = np.array([5.0, -5.0, 5.0])
     settle, rmse = {}, {}
     for threshold in (0.0, 60.0):
-        taus = _step_response(_onset_filter(panda_config, 3, threshold), rng, step, noise=1e-3)
+        taus = _step_response(_onset_filter(panda_config, 3, threshold, form), rng, step, noise=1e-3)
         inside = np.all(np.abs(taus - step) <= 0.1 * np.abs(step), axis=1)
         settle[threshold] = np.flatnonzero(inside[1000:])[0]   # samples after the step
         rmse[threshold] = np.sqrt(np.mean((taus[1000:1050] - step) ** 2))   # first 100 ms
@@ -324,10 +338,11 @@ def test_onset_detector_tracks_a_step_much_faster(panda_config, rng):
     assert rmse[0.0] > 3.0 * rmse[60.0]
 
 
-def test_onset_detector_stays_quiet_without_a_jump(panda_config, rng):
+@pytest.mark.parametrize("form", MOMENTUM_FORMS)
+def test_onset_detector_stays_quiet_without_a_jump(panda_config, rng, form):
     """20 s of a slow random-walk τ_ext (the prior density) with momentum noise: no alarm."""
     n, h, q0, R = 7, 0.002, 0.05, 1e-6
-    observer = _onset_filter(panda_config, n, 60.0)
+    observer = _onset_filter(panda_config, n, 60.0, form)
     for _ in _random_walk_run(observer, n, h, q0, R, 10000, rng):
         pass
     assert observer.onset.alarms == 0

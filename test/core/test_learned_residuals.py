@@ -190,8 +190,8 @@ def test_sparse_gp_equals_direct_formula(approximation) -> None:
     x = rng.uniform(-1.0, 1.0, 150)
     y = np.tanh(4 * x) + 0.1 * rng.standard_normal(150)
     z = np.linspace(-1.0, 1.0, 8)
-    fit = rb._SEFit(length_scale=0.3, sigma_f2=0.9, noise_var=0.01,
-                    log_marginal_likelihood=0.0, length_scale_at_lower_bound=False)
+    fit = rb.SEFit(length_scale=0.3, sigma_f2=0.9, noise_var=0.01,
+                   log_marginal_likelihood=0.0, length_scale_at_lower_bound=False)
     c, chol_a = sparse_gp._sparse_factors(x, y, z, fit, approximation)
     hyper = GPHyperparameters(length_scale=[0.3], sigma_f2=[0.9], noise_var=[0.01])
     model = SparseGPResidualModel(z[None], c[None], chol_a[None], hyper, approximation)

@@ -9,7 +9,8 @@ import pytest
 
 from kvark_ros.core.config import ConfigError, config_from_parameters, flatten_parameters
 from kvark_ros.core.estimation.estimator import Estimator
-from kvark_ros.core.estimation.model_checks import RATE_TOLERANCE, data_source, measured_rate, model_warnings, rate_warning
+from kvark_ros.core.estimation.model_checks import (RATE_TOLERANCE, data_source, measured_rate, model_warnings,
+                                                    rate_warning)
 from kvark_ros.core.estimation.model_store import load_model, save_model
 from kvark_ros.core.estimation.observers.base import PerSample
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream, train_synthetic

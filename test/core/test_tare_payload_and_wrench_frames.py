@@ -1,4 +1,5 @@
-"""Tare, run-time payload and the wrench in both frames (ROS-free): ``kvark_ros.core.estimation.tare`` and the Estimator API.
+"""Tare, run-time payload and the wrench in both frames (ROS-free):
+``kvark_ros.core.estimation.tare`` and the Estimator API.
 
 Streams at rest are exactly constant (no noise), so the filter settles to a constant and what a tare
 leaves is rounding; the tolerances below say which. models/panda (committed) is the trained model.

@@ -31,7 +31,7 @@ PANDA_OFFSET = [0.5, -0.4, 0.3, 0.0, 0.2, 0.0, 0.0]
 PANDA_GAIN = [0.9, 1.1, 1.0, 0.92, 1.0, 1.0, 1.0]
 PAYLOAD = {"mass": 1.5, "com": [0.0, 0.02, 0.08]}
 # Stribeck hump F_s − F_c on the four big Panda / three big UR5 joints only (the others: plain
-# Coulomb), so "the right joints" is tested; v_s = 0.3 rad/s from STRIBECK_VELOCITIES: at 0.1 rad/s
+# Coulomb), so "the right joints" is tested; v_s = 0.3 rad/s from the catalog's v_s grid: at 0.1 rad/s
 # the hump lives where the joints mostly stick and is found on some joints only.
 STRIBECK_VELOCITY = 0.3
 PANDA_STRIBECK = [0.5, 0.5, 0.4, 0.5, 0.0, 0.0, 0.0]

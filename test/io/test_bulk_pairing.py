@@ -1,5 +1,6 @@
 """Replay pairs a run's joint states and commands all at once (kvark_ros.io.alignment._paired_rows); every
-decision must be the streaming pairer's (kvark_ros.core.estimation.pairing.StreamPairer fed the messages in time order)."""
+decision must be the streaming pairer's (kvark_ros.core.estimation.pairing.StreamPairer fed the messages in time
+order)."""
 from __future__ import annotations
 
 from pathlib import Path

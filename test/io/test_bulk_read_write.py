@@ -18,7 +18,7 @@ from kvark_ros.io import BagError, RecordedRun, read_run
 from kvark_ros.io import mcap_bulk, reader
 from kvark_ros.io.alignment import estimator_inputs
 from kvark_ros.io.cdr_arrays import Layout, message_fields, windows
-from kvark_ros.io.common import BOOL, FLOAT64_ARRAY, JOINT_STATE, WRENCH_STAMPED, _typestore
+from kvark_ros.io.common import BOOL, FLOAT64_ARRAY, JOINT_STATE, WRENCH_STAMPED, typestore
 from kvark_ros.io.mcap_bulk import indexed_messages
 from kvark_ros.tools.replay import ObserverRun, write_estimates
 
@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[2]
 BAGS = sorted((ROOT / "bags").glob("panda_*"))
 ARM = tuple(f"panda_joint{i}" for i in range(1, 8))
 FINGERS = ("panda_finger_joint1", "panda_finger_joint2")
-TYPES = _typestore().types
+TYPES = typestore().types
 
 
 # -- messages built and serialised by rosbags alone
@@ -76,11 +76,11 @@ class RosbagsBag:
     def raw(self, topic: str, msgtype: str, ns: int, data: bytes) -> None:
         key = (topic, msgtype)
         if key not in self.conns:
-            self.conns[key] = self.writer.add_connection(topic, msgtype, typestore=_typestore())
+            self.conns[key] = self.writer.add_connection(topic, msgtype, typestore=typestore())
         self.writer.write(self.conns[key], ns, data)
 
     def add(self, topic: str, msgtype: str, ns: int, msg: Any, little_endian: bool = True) -> None:
-        self.raw(topic, msgtype, ns, bytes(_typestore().serialize_cdr(msg, msgtype, little_endian=little_endian)))
+        self.raw(topic, msgtype, ns, bytes(typestore().serialize_cdr(msg, msgtype, little_endian=little_endian)))
 
     def close(self) -> None:
         self.writer.close()
@@ -255,7 +255,7 @@ def test_layout_decodes_and_encodes_like_rosbags(little_endian: bool) -> None:
     """A layout read off one message decodes every message of its layout as rosbags does, also with other
     bytes in the alignment padding, and refuses a message whose names differ; encoding gives rosbags' bytes."""
     rng = np.random.default_rng(7)
-    store = _typestore()
+    store = typestore()
     for _ in range(25):
         for (msgtype, msg), (_, other) in zip(_messages(rng), _messages(rng)):
             raw = bytes(store.serialize_cdr(msg, msgtype, little_endian=little_endian))
@@ -281,7 +281,7 @@ def test_layout_decodes_and_encodes_like_rosbags(little_endian: bool) -> None:
 
 def _ignored(raw: bytes, msgtype: str) -> list[int]:
     """Bytes of ``raw`` that rosbags ignores (alignment padding): changing one leaves the message it decodes."""
-    store = _typestore()
+    store = typestore()
     reference = bytes(store.serialize_cdr(store.deserialize_cdr(raw, msgtype), msgtype, little_endian=bool(raw[1])))
     ignored = []
     for position in range(4, len(raw)):
@@ -306,8 +306,8 @@ def _reference_estimates(path: Path, run: RecordedRun, inputs: Any, results: lis
 
     def put(topic: str, msgtype: str, stamp: float, msg: Any) -> None:
         if topic not in conns:
-            conns[topic] = writer.add_connection(topic, msgtype, typestore=_typestore())
-        writer.write(conns[topic], round(stamp * 1e9), bytes(_typestore().serialize_cdr(msg, msgtype)))
+            conns[topic] = writer.add_connection(topic, msgtype, typestore=typestore())
+        writer.write(conns[topic], round(stamp * 1e9), bytes(typestore().serialize_cdr(msg, msgtype)))
 
     names = list(run.joint_names)
     js, cmd, wr, ext = run.joint_states, run.commands, run.wrench, run.external_torque

@@ -1,6 +1,7 @@
 """``kvark init``: a config for a new robot from its URDF or xacro, made from the key table and loadable."""
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -8,7 +9,7 @@ import yaml
 
 from kvark_ros.cli import main
 from kvark_ros.core.config import NODE_NAME, flatten_parameters, load_config
-from kvark_ros.core.config_schema import KEYS
+from kvark_ros.core.config_schema import KEYS, KEYS_BY_NAME, regenerated_config_text
 from kvark_ros.core.estimation.robot_model import RobotModel
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -92,6 +93,20 @@ def test_every_key_is_commented_with_its_meaning_and_allowed_values(tmp_path):
     assert all(len(line) <= 110 for line in lines)
     assert _parameters(out)["robot_model.ee_frame"] == "tool0"           # the deepest link, as config/ur5.yaml
     assert _parameters(out)["residual_model.model_dir"] == "models/ur"
+
+
+def test_init_writes_through_the_config_file_generator(tmp_path):
+    """The same code writes config/*.yaml: the file is what ``--write-configs`` makes of it, init's notes (after a
+    lone '#') kept; the header names only keys the loader accepts."""
+    out = tmp_path / "config" / "panda2.yaml"
+    assert _init("--urdf", "example-robot-data:panda", "--robot", "panda2", "--out", out) == 0
+    text = out.read_text()
+    assert regenerated_config_text(text) == text
+    assert "      #\n      # Proposed by kvark init: the last link of the chain" in text
+    header = text[:text.index(f"{NODE_NAME}:")]
+    groups = "|".join({key.name.split(".")[0] for key in KEYS if "." in key.name})
+    named = re.findall(rf"\b(?:{groups})(?:\.[a-z_]+)+", header)
+    assert named and all(name in KEYS_BY_NAME for name in named), named
 
 
 def test_hand_written_urdf_path_is_relative_to_the_config_folder(tmp_path, capsys):

@@ -6,8 +6,8 @@ assumptions: on the realistic simulated Panda the drifting friction and offset m
 within the filter's band makes it 0.2-0.3 times its σ. On contact-free data the true τ_ext is zero, so
 τ̂ itself is the error, and the factor c_j that puts ``COVERAGE`` of the training τ̂_j inside ±1.96 c_j σ_j
 can be read off the training recordings. The estimator reports c² P (each joint's row and column scaled
-by c) plus the static friction band's σ²_s (core.estimation.stiction), and so the wrench covariance; the filter, its gain
-and the contact and collision tests keep P. c is read for that whole reported interval: near rest the band
+by c) plus the static friction band's σ²_s (core.estimation.stiction), and so the wrench covariance; the filter, its
+gain and the contact and collision tests keep P. c is read for that whole reported interval: near rest the band
 already covers part of the misfit, so the factor needed there is smaller. The factors are read at training
 (``core.learning.interval_factors``); this module holds them and applies them.
 """

@@ -7,7 +7,7 @@ are identical for identical inputs. Per sample: the observer's τ̂_ext, minus t
 (``start_tare``/``clear_tare``) and the run-time config keys (``configure``) may change between
 two samples; the filter continues.
 
-With ``filter.kernel: numba`` (a ``KVARKKernelFilter``) everything of a step but the pinocchio passes runs as one
+With a momentum-form K-VARK filter (a ``KVARKKernelFilter``) everything of a step but the pinocchio passes runs as one
 compiled kernel (``kvark_ros.core.estimation.step_kernel``); the numpy code below is the reference it is tested against.
 """
 from __future__ import annotations
@@ -123,7 +123,8 @@ def model_augmentation(config: EstimatorConfig, trained: TrainedModel) -> Augmen
 
 
 def payload_problem(payload: Payload | None) -> str | None:
-    """Why ``payload`` is not a physical rigid body (``core.estimation.payload.inertia_problem``), or None (also for None).
+    """Why ``payload`` is not a physical rigid body (``core.estimation.payload.inertia_problem``),
+    or None (also for None).
 
     Its 10 dynamic parameters about the flange origin: ``[m, m c, I_o]``, ``I_o = I_c + m (|c|² 𝟙 − c cᵀ)``.
     """
@@ -173,8 +174,8 @@ class Estimator:
         self.unobservable_samples = 0     # estimates with a wrench direction the joints cannot sense (§1.4.1)
         self.status = Status.WARMUP
         self._p_prev, self._u_prev = np.zeros(robot.n), np.zeros(robot.n)
-        # A compiled filter (filter.kernel: numba) runs the whole step compiled (core.estimation.compiled_step; imported here, so
-        # that the numpy path never loads numba).
+        # A compiled filter (momentum-form K-VARK) runs the whole step compiled (core.estimation.compiled_step; imported
+        # here, so that the numpy path never loads numba).
         self._compiled = None
         if getattr(observer, "compiled", False):
             from kvark_ros.core.estimation.compiled_step import CompiledStep
@@ -208,7 +209,7 @@ class Estimator:
 
     @property
     def compiled(self) -> bool:
-        """Whether ``step`` runs as the compiled kernel (``filter.kernel: numba`` with a K-VARK momentum filter)."""
+        """Whether ``step`` runs as the compiled kernel (with a K-VARK momentum filter)."""
         return self._compiled is not None
 
     def configure(self, config: EstimatorConfig) -> None:

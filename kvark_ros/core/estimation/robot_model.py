@@ -295,7 +295,8 @@ class RobotModel:
         return p, u
 
     def compute_terms(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
-        """The pinocchio passes of ``momentum_terms`` and ``jacobian``, for the compiled step (core.estimation.step_kernel).
+        """The pinocchio passes of ``momentum_terms`` and ``jacobian``,
+        for the compiled step (core.estimation.step_kernel).
 
         g(q), rnea(q, 0, q̇) = M q̇ + g and C(q, q̇) are left in ``terms`` (with the ee rotation R); returns J (6, n)
         of the ee frame origin in base axes.

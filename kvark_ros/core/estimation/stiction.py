@@ -9,8 +9,8 @@ The band F_s,j is identified at training from the friction the model sees: the r
 augmentation's friction effects (docs/method.md §4.11), as half the jump of its median across zero
 velocity, from samples sliding slowly either way (``SLOW``: above the velocity noise, below the speeds
 where friction falls from its static to its sliding level), with τ_m and q̈ through a 50 ms filter
-(``core.learning.static_band``, ``training.band_friction``). The estimate is not changed; its interval is widened by the variance of a
-torque uniform on ±F_s,
+(``core.learning.static_band``, ``training.band_friction``). The estimate is not changed; its interval is widened by the
+variance of a torque uniform on ±F_s,
 
     σ²_s,j(q̇_j) = F_s,j² / 3 · exp(−(q̇_j / v_s)²),
 

@@ -1,7 +1,7 @@
 """Build K-VARK, its ablations A1-A4 and the oracle (``observer_catalog``): one ``build`` for the filter family.
 
-The filter runs in the configured measurement form (``filter.measurement``) and implementation (``filter.kernel``:
-the compiled kernel or the numpy reference; the difference form is numpy either way).
+The filter runs in the configured measurement form (``filter.measurement``): the momentum form compiled
+(``KVARKKernelFilter``), the difference form as numpy (``KVARKFilter``).
 """
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ from typing import TYPE_CHECKING
 from kvark_ros.core.config import FilterSettings
 from kvark_ros.core.estimation.observers.base import Observer, ObserverError, ResidualPredictor
 from kvark_ros.core.estimation.observers.kvark_filter import VARIANTS, KVARKFilter
-from kvark_ros.core.estimation.observers.kvark_momentum import KVARKMomentumFilter
 
 if TYPE_CHECKING:
     from kvark_ros.core.estimation.model_store import TrainedModel
@@ -20,10 +19,6 @@ if TYPE_CHECKING:
 def kvark_filter(variant: str, residual: ResidualPredictor, tuning: "FilterTuning", trained: "TrainedModel",
                  settings: FilterSettings, name: str) -> Observer:
     """The K-VARK filter ``variant`` (a key of ``VARIANTS``) on ``residual`` with ``tuning``, reported as ``name``."""
-    form: type[KVARKMomentumFilter] = KVARKMomentumFilter
-    if settings.kernel == "numba":          # imported here: numba loads (~0.2 s) only where it is chosen
-        from kvark_ros.core.estimation.observers.kvark_kernel import KVARKKernelFilter
-        form = KVARKKernelFilter
     if settings.measurement == "difference":
         return KVARKFilter(variant, residual, tuning, settings, name=name, sample_period=trained.sample_period)
     if trained.momentum_noise is None:
@@ -33,7 +28,9 @@ def kvark_filter(variant: str, residual: ResidualPredictor, tuning: "FilterTunin
         # Σ_d adapts at contact, so its free-motion prior need not track contacts itself (docs/method.md §4.12);
         # the fixed-Σ_d variants keep the training's bandwidth, which must.
         noise = noise.with_bandwidth(settings.prior_bandwidth, trained.sample_period)
-    return form(variant, residual, tuning, noise, settings, name=name, sample_period=trained.sample_period)
+    # imported here: numba loads (~0.2 s) only where the momentum form is built
+    from kvark_ros.core.estimation.observers.kvark_kernel import KVARKKernelFilter
+    return KVARKKernelFilter(variant, residual, tuning, noise, settings, name=name, sample_period=trained.sample_period)
 
 
 def build(name: str, trained: "TrainedModel", settings: FilterSettings,

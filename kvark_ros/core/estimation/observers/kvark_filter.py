@@ -31,7 +31,8 @@ import numpy as np
 from kvark_ros.core.config import FilterSettings
 from kvark_ros.core.config_schema import vb_variant_problem
 from kvark_ros.core.estimation.linalg import solve_spd
-from kvark_ros.core.estimation.observers.base import DEFAULT_SAMPLE_PERIOD, FilterTuning, Observer, PerSample, ResidualPredictor
+from kvark_ros.core.estimation.observers.base import (DEFAULT_SAMPLE_PERIOD, FilterTuning, Observer, PerSample,
+                                                      ResidualPredictor)
 
 NIS_SCALE_BOUNDS = (1e-2, 1e4)   # limits of the A4 process-noise scale α, so one outlier cannot freeze or explode Σ_d
 

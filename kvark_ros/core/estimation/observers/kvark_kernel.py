@@ -1,26 +1,26 @@
-"""The momentum-form K-VARK filter with its step compiled (``filter.kernel: numba``, the default).
+"""The momentum-form K-VARK filter with its step compiled: the one implementation of that step.
 
-Why. ``KVARKMomentumFilter.step`` cost ~600 k instructions per sample, most of them numpy's per-call overhead on
-7-element arrays (issue 16). Here its per-sample arithmetic (docs/method.md §4.2-4.7) runs in one ``numba.njit``
-function, ``step_kernel.kvark_step``, that loops over the joints and updates the filter's state in place.
-``KVARKMomentumFilter`` stays the readable reference: the same equations in the same order of operations, so the
-two agree to floating-point rounding (the tests pin that on the committed bags), and the kernel observer keeps the
-reference's ``STATE`` (same names, shapes and values), so ``state``/``load_state`` work unchanged.
+Why. The numpy step cost ~600 k instructions per sample, most of them numpy's per-call overhead on 7-element
+arrays (issue 16). Here the per-sample arithmetic (docs/method.md §4.2-4.7) runs in one ``numba.njit`` function,
+``step_kernel.kvark_step``, that loops over the joints and updates the filter's state in place. The readable numpy
+version is a test oracle (``ReferenceMomentumFilter``, test/core/reference_filter.py): the same equations in the same
+order of operations, so the two agree to floating-point rounding (the tests pin that on the committed bags). The
+settings, ``STATE`` (names, shapes and values), ``reset`` and ``configure`` are ``KVARKMomentumFilter``'s, so
+``state``/``load_state`` work unchanged.
 
 Covered: the momentum form in every variant (``kf``, ``kmp_kf``, ``kmp_kf_ewma``, ``kmp_kf_nis``, and the VB
 variants in the readings ``window``, ``paper`` and ``smoothed``, with or without the onset detector). A q̇-only
 KMP residual model (eqs. 21-23 and the far-field floor, §3.3, §3.6) is evaluated inside the kernel, a KMP with
 second inputs (§3.7) by ``model_kernels.kmp_predict_pose`` before it; any other residual predictor (the learned
 baselines, the oracle) is called in Python and its mean and variance passed in. The difference form
-(``KVARKFilter``, §4.1) has no kernel: ``make_observer`` builds the numpy filter for it whichever
-``filter.kernel`` is set.
+(``KVARKFilter``, §4.1) has no kernel: ``make_observer`` builds the numpy filter for it.
 
 The kernel (``kvark_step``) lives in ``kvark_ros.core.estimation.step_kernel`` with the compiled ``Estimator.step`` that
 calls it (numba's cache sees one file). It takes the state as two buffers (``KernelState``: one float64, one
 int64) and the constants as one float64 and one int64 array, because every array numba receives from Python costs
 about 1 k instructions to unbox (issue 16 measured 30 k of the filter's 100 k on its 30 arguments). The
-reference's state attributes (``p_hat``, ``tau``, …, the window's ``z``, …, the detector's ``ep``, …) are views of
-those buffers (``_Packed``): the reference's ``reset``, ``state`` and ``load_state`` run unchanged on them. The
+state attributes (``p_hat``, ``tau``, …, the window's ``z``, …, the detector's ``ep``, …) are views of those
+buffers (``_Packed``): ``KVARKMomentumFilter``'s ``reset``, ``state`` and ``load_state`` run unchanged on them. The
 constants are written by name from ``step_kernel``'s layouts: the ``Const`` rows, every ``Param`` entry from this
 filter's attribute of its lower-case name or from ``declared_params``, the ``Option`` entries; the residual model's
 factors come from ``KMPResidualModel.kernel_arrays``.
@@ -42,7 +42,8 @@ from kvark_ros.core.estimation.observers.onset import OnsetDetector
 from kvark_ros.core.estimation.observers.window_vb import WINDOW_MAX_RATIO, WINDOW_SNAPSHOTS, WindowVB
 from kvark_ros.core.estimation.residual.common import VARIANCE_FLOOR
 from kvark_ros.core.estimation.residual.kmp import KMPResidualModel
-from kvark_ros.core.estimation.kernel_layouts import CONST_ROWS, INTS, PARAMS, Const, Counter, Option, Param, Pose, Vec, pack
+from kvark_ros.core.estimation.kernel_layouts import (CONST_ROWS, INTS, PARAMS, Const, Counter, Option, Param, Pose,
+                                                      Vec, pack)
 from kvark_ros.core.estimation.step_kernel import kvark_step, split_constants, split_state, state_size
 
 
@@ -59,10 +60,10 @@ class KernelState:
 
 
 class _Packed:
-    """A state attribute of the reference kept in a ``KernelState`` (the owner's ``packed``).
+    """A state attribute of ``KVARKMomentumFilter`` kept in a ``KernelState`` (the owner's ``packed``).
 
-    Reading gives a view of its part of the buffers, or None until it is first set (the reference's "not yet
-    primed"; the flag is the owner's ``_has_<name>``); writing a value copies it in. So the reference's ``reset``,
+    Reading gives a view of its part of the buffers, or None until it is first set (the base class's "not yet
+    primed"; the flag is the owner's ``_has_<name>``); writing a value copies it in. So the base class's ``reset``,
     ``state`` and ``load_state``, which assign and deep-copy these attributes, work on the packed buffers.
     """
 
@@ -84,7 +85,7 @@ class _Packed:
 
 
 class _PackedScalar:
-    """A scalar state attribute of the reference (a counter, the window's dof) kept in a ``KernelState``."""
+    """A scalar state attribute of the base classes (a counter, the window's dof) kept in a ``KernelState``."""
 
     def __init__(self, part: str, index: int, kind: type) -> None:
         self.part, self.index, self.kind = part, int(index), kind
@@ -123,8 +124,9 @@ class PackedOnsetDetector(OnsetDetector):
 class KVARKKernelFilter(KVARKMomentumFilter):
     """``KVARKMomentumFilter`` whose ``step`` is the compiled ``kvark_step`` (module docstring).
 
-    Same constructor, ``STATE``, ``reset``, ``configure`` and results (to rounding) as the reference; the state
-    lives in ``packed`` (its attributes are views of it), and ``step`` hands out copies.
+    ``KVARKMomentumFilter``'s constructor, ``STATE``, ``reset`` and ``configure``; results equal to the numpy
+    reference's (test/core/reference_filter.py) to rounding; the state lives in ``packed`` (its attributes are views
+    of it), and ``step`` hands out copies.
     """
 
     compiled = True     # the Estimator runs its whole step compiled around this filter (core.estimation.compiled_step)
@@ -198,10 +200,10 @@ class KVARKKernelFilter(KVARKMomentumFilter):
             mean[:], var[:] = value
 
     def _apply_runtime(self, settings: FilterSettings) -> None:
-        """The reference's, then every ``Param`` entry: ``declared_params``, else this filter's attribute of the
+        """The base class's, then every ``Param`` entry: ``declared_params``, else this filter's attribute of the
         entry's lower-case name."""
         super()._apply_runtime(settings)
-        if hasattr(self, "_params"):                                   # the reference sets the rates before us
+        if hasattr(self, "_params"):                                   # the base class sets the rates before us
             declared = self.declared_params()
             self._params[:] = [declared[member] if member in declared else getattr(self, member.name.lower())
                                for member in Param]
@@ -216,8 +218,8 @@ class KVARKKernelFilter(KVARKMomentumFilter):
     def prepare(self, dt: float, qd: np.ndarray, p_prev: np.ndarray, q: np.ndarray | None = None,
                 g: np.ndarray | None = None) -> None:
         """What precedes ``kvark_step`` in Python: the first step after a reset primes the state (p̂ = p_{k−1}, every
-        snapshot at τ̂_0 as ``WindowVB.predict``, the per-sample VB's prior at its steady state with mean Σ_d0 = q_τ h
-        as ``_vb_update``); a residual model other than a q̇-only KMP is evaluated (one with second inputs compiled)."""
+        snapshot at τ̂_0, the per-sample VB's prior at its steady state with mean Σ_d0 = q_τ h, as the numpy
+        reference); a residual model other than a q̇-only KMP is evaluated (one with second inputs compiled)."""
         if self._vb_iw and not self._has_Sigma_d:
             rho = self.vb_forgetting
             self.vb_dof = np.full(self.n, 2.0 + (1.0 / (1.0 - rho) if rho < 1.0 else 1.0))

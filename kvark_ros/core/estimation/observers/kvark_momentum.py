@@ -20,18 +20,23 @@ recursion (eqs. 33-40, with forgetting), one joint at a time (a mean-field over 
 ``vbkfmo_q`` baseline): as written, from a lag-one smoother, or over windows (``window_vb``, the
 default), helped at impacts by a contact-onset detector (``onset``). Per joint the filter is a
 2-state KF ((K1)-(K5) of ``momentum_observers``), run for all joints at once on arrays.
+
+The step runs compiled only (``kvark_kernel.KVARKKernelFilter``, ``step_kernel.kvark_step``); this module holds what
+the filter is built from: its settings, state, components, ``reset`` and ``configure``.
 """
 from __future__ import annotations
+
+from abc import abstractmethod
 
 import numpy as np
 
 from kvark_ros.core.config import FilterSettings
 from kvark_ros.core.config_schema import vb_variant_problem
 from kvark_ros.core.estimation.observers.base import DEFAULT_SAMPLE_PERIOD, FilterTuning, PerSample, ResidualPredictor
-from kvark_ros.core.estimation.observers.kvark_filter import NIS_SCALE_BOUNDS, VARIANTS
+from kvark_ros.core.estimation.observers.kvark_filter import VARIANTS
 from kvark_ros.core.estimation.observers.momentum_noise import MomentumNoise
-from kvark_ros.core.estimation.observers.momentum_observers import KFMomentumObserver, joseph_update
-from kvark_ros.core.estimation.observers.onset import Jump, OnsetDetector
+from kvark_ros.core.estimation.observers.momentum_observers import KFMomentumObserver
+from kvark_ros.core.estimation.observers.onset import OnsetDetector
 from kvark_ros.core.estimation.observers.window_vb import WindowVB
 
 R_FLOOR = 1e-2          # adaptive R never falls below this fraction of its training value
@@ -46,6 +51,11 @@ class KVARKMomentumFilter(KFMomentumObserver):
     keys, the onset detector's and the adaptation rates. With VB, ``window`` (``vb_variant:
     window``) and ``onset`` (``onset_threshold`` > 0) are the windowed VB and the contact-onset
     detector; ``None`` when not used.
+
+    ``step`` is abstract: the one implementation is the compiled ``KVARKKernelFilter`` (``observers.kvark_kernel``,
+    ``step_kernel.kvark_step``), which ``make_observer`` builds for the momentum form. Its readable numpy
+    reference, the same equations in the same order, is ``ReferenceMomentumFilter`` in
+    test/core/reference_filter.py, pinned to the kernel by test/core/test_compiled_step_matches_reference.py.
     """
 
     uses_residual_model = True
@@ -81,11 +91,13 @@ class KVARKMomentumFilter(KFMomentumObserver):
         self.name = name or variant
 
     def _make_window(self, prior_density: np.ndarray, window: int, forgetting: float, prior_dof: float) -> WindowVB:
-        """The windowed VB component (``WindowVB``'s arguments); the compiled subclass keeps its state packed."""
+        """The windowed VB's state (``WindowVB``'s arguments): packed in the compiled subclass, stepped in numpy by the
+        test reference."""
         return WindowVB(prior_density, window, forgetting, prior_dof)
 
     def _make_onset(self, n: int, threshold: float, window: int) -> OnsetDetector:
-        """The onset detector (``OnsetDetector``'s arguments); the compiled subclass keeps its state packed."""
+        """The onset detector's state (``OnsetDetector``'s arguments): packed in the compiled subclass, stepped in numpy
+        by the test reference."""
         return OnsetDetector(n, threshold, window)
 
     def _apply_runtime(self, settings: FilterSettings) -> None:
@@ -106,109 +118,8 @@ class KVARKMomentumFilter(KFMomentumObserver):
         if self.onset is not None:
             self.onset.reset()
 
+    @abstractmethod
     def step(self, dt: float, qd: np.ndarray, p: np.ndarray, p_prev: np.ndarray,
              u_prev: np.ndarray, q: np.ndarray | None = None,
              g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        variant = self.variant
-        if self.p_hat is None:
-            self.p_hat = p_prev
-        mu, var_star = self.residual.predict(qd, q, g) if self.needs else self.residual.predict(qd)  # 22-23
-        self.prediction = mu, var_star
-        tau_pred = self.tau                                             # eq. 41
-        p_pred = self.p_hat + dt * (u_prev - mu + tau_pred)              # eq. 28 as the momentum model
-        residual_var = var_star if variant.heteroscedastic else self.tuning.residual_variance
-        hh = dt * dt
-        b, hc = self.b, dt * self.c                                     # F P Fᵀ, F = [[1, h], [0, 1]]
-        a_f = self.a + dt * (b + b + hc) + self.q_p * dt + hh * residual_var   # + w_p (eq. 30's t_s² Σ_*)
-        b_f, c_f = b + hc, self.c
-        nu = p - p_pred                                                 # innovation
-        R = self.R_adaptive if variant.ewma else self.R
-        sigma_d = self.q_tau * dt                                       # Σ_d from training (eq. 32)
-        if variant.nis:
-            sigma_d = sigma_d * self.nis_mean                           # A4: Σ_d = α Σ_d0
-        if not variant.vb:
-            self._update(p_pred, tau_pred, a_f, b_f, c_f, nu, R, sigma_d, dt)
-        elif self.window is not None:
-            self._window_update(p_pred, tau_pred, a_f, b_f, c_f, nu, R, dt)
-        else:
-            self._vb_update(p_pred, tau_pred, a_f, b_f, c_f, nu, R, sigma_d, dt)
-        if self.onset is not None:                                      # part of the Σ_d adaptation
-            jump = self.onset.step(nu, R, self._last_s, self._last_k2, dt)
-            if jump is not None:
-                self._apply_jump(jump)
-        if variant.ewma:
-            # eq. 31 with eq. 16's correction: E[ν²] = H P⁻ Hᵀ + R; bounded by the training R (Remark 2)
-            a_pred = a_f + self._last_q[0]
-            updated = self.R_adaptive + self.ewma_rate * (nu * nu - a_pred - self.R_adaptive)
-            self.R_adaptive = np.minimum(np.maximum(updated, self.R_min), self.R)   # np.clip costs 4× more
-        if variant.nis:
-            nis = nu * nu / self._last_s
-            updated = self.nis_mean + self.nis_rate * (nis - self.nis_mean)
-            self.nis_mean = np.minimum(np.maximum(updated, NIS_SCALE_BOUNDS[0]), NIS_SCALE_BOUNDS[1])
-        return self.tau, np.diag(self.c)
-
-    def _apply_jump(self, jump: Jump) -> None:
-        """Correct the state for the onset detector's accepted jumps: x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ / C_θ."""
-        joints, e_p, e_t, c = jump.joints, jump.e_p, jump.e_t, jump.information
-        self.p_hat = self.p_hat.copy()
-        self.tau = self.tau.copy()
-        self.p_hat[joints] += e_p * jump.size
-        self.tau[joints] += e_t * jump.size
-        self.a[joints] += e_p * e_p / c
-        self.b[joints] += e_p * e_t / c
-        self.c[joints] += e_t * e_t / c
-
-    def _update(self, p_pred, tau_pred, a, b, c, nu, R, sigma_d, h) -> np.ndarray:
-        """Add the random walk's Q (K2) for per-step variance Σ_d and update (K3)-(K5); returns τ̂⁺."""
-        q = (sigma_d * (h * h / 3.0), sigma_d * (h / 2.0), sigma_d)     # q_τ h³/3, q_τ h²/2, q_τ h
-        self._last_q = q
-        self.p_hat, self.tau, self.a, self.b, self.c, self._last_s, self._last_k2 = joseph_update(
-            p_pred, tau_pred, a + q[0], b + q[1], c + q[2], nu, R)
-        return self.tau
-
-    def _vb_update(self, p_pred, tau_pred, a, b, c, nu, R, sigma_d0, h) -> None:
-        """VB-IW on Σ_d per joint (eqs. 33-40, state dimension 1 per joint) with forgetting ρ."""
-        rho = self.vb_forgetting
-        if self.Sigma_d is None:                                        # prior at its steady state, mean Σ_d0
-            self.vb_dof = np.full(self.n, 2.0 + (1.0 / (1.0 - rho) if rho < 1.0 else 1.0))
-            self.Sigma_d = sigma_d0
-            self.vb_scale = sigma_d0 * (self.vb_dof - 2.0)
-        dof_pred = rho * (self.vb_dof - 2.0) + 2.0                      # λ_{k|k−1}
-        scale_pred = rho * self.vb_scale                                # Υ_{k|k−1}
-        sigma_d = self.Sigma_d
-        previous = (self.a, self.b, self.c)                            # P_{k−1|k−1} per joint
-        smoothed = self.vb_smoothed
-        for _ in range(self.vb_iterations):
-            tau = self._update(p_pred, tau_pred, a, b, c, nu, R, sigma_d, h)   # eqs. 42-45
-            e = tau - tau_pred                                          # eq. 34
-            if smoothed:
-                increment = self._smoothed_increment(previous, nu, h)
-            else:
-                increment = e * e + self.c                              # eq. 38 as written
-            self.vb_dof = dof_pred + 1.0                                # eq. 37
-            self.vb_scale = scale_pred + increment                      # eq. 38
-            sigma_d = self.vb_scale / (self.vb_dof - 2.0)               # eqs. 39-40 (n = 1 per joint)
-        self.Sigma_d = sigma_d
-
-    def _smoothed_increment(self, previous: tuple[np.ndarray, ...], nu: np.ndarray, h: float) -> np.ndarray:
-        """``E[(τ_k − τ_{k−1})² | y_1:k]`` per joint from a lag-one Rauch-Tung-Striebel smoother.
-
-        The statistic eq. 38 stands for. As written, ``e² + P_{k|k}`` counts the posterior
-        uncertainty of τ_k as if τ_{k−1} were known, so Σ_d can never fall below P_{k|k}. With the
-        smoother gain G = P_{k−1} Fᵀ (P⁻)⁻¹ and the optimal gain K = P⁻Hᵀ/s, the smoothed increment
-        ŵ = e − (G K ν)_τ, P_{k−1|k} = P_{k−1} − G K s Kᵀ Gᵀ and P_{k,k−1|k} = (I − KH) F P_{k−1}
-        reduce, with r = (P_{k−1} Fᵀ)_τp = b_{k−1} + h c_{k−1}, to
-        ``(k₂ν − rν/s)² + c_k − c_{k−1} − r²/s + 2 k₂ r`` (checked against the matrix form).
-        """
-        _, b0, c0 = previous
-        r = b0 + h * c0
-        s, k2 = self._last_s, self._last_k2
-        w_hat = (k2 - r / s) * nu
-        return np.maximum(w_hat * w_hat + self.c - c0 - r * r / s + 2.0 * k2 * r, 0.0)
-
-    def _window_update(self, p_pred, tau_pred, a, b, c, nu, R, h) -> None:
-        """The windowed VB (``window_vb``) around the update (K2)-(K5) on (p, τ) with its Σ_d."""
-        sigma_d = self.window.predict(h, self.tau, self.b, self.c)
-        self._update(p_pred, tau_pred, a, b, c, nu, R, sigma_d, h)     # eqs. 42-45 on (p, τ)
-        k1 = (a + self._last_q[0]) / self._last_s
-        self.Sigma_d = self.window.update(h, nu, self._last_s, k1, self._last_k2, self.tau, self.b, self.c)
+        """One sample (``Observer.step``): compiled in ``KVARKKernelFilter`` (class docstring)."""

@@ -28,35 +28,21 @@ operations per step.
 The detector belongs to the Σ_d adaptation (a jump is the limit of a large Σ_d for one sample),
 so only the variants with VB use it; the fixed-Q ablations (``kf``, ``kmp_kf*``) stay the paper's
 baselines.
+
+Here: the detector's constants and state; its arithmetic runs in the compiled step (``step_kernel.kvark_step``), its
+numpy reference is ``ReferenceOnsetDetector`` in test/core/reference_filter.py.
 """
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 
 from kvark_ros.core.estimation.observers.base import Stateful
 
 
-@dataclass(frozen=True)
-class Jump:
-    """Jumps accepted at one step, on ``joints`` (J,): the filter adds ``e_p · size`` to p̂,
-    ``e_t · size`` to τ̂ and ``e eᵀ / information`` to each joint's P (module docstring).
-
-    e_p, e_t: e⁺_k of the accepted onset θ (J,); size: Δ̂_θ (J,) N·m; information: C_θ (J,).
-    """
-
-    joints: np.ndarray
-    e_p: np.ndarray
-    e_t: np.ndarray
-    size: np.ndarray
-    information: np.ndarray
-
-
 class OnsetDetector(Stateful):
     """The GLR hypotheses of n joints, M onsets each (module docstring); ``alarms``: joint alarms since reset.
 
-    State (n, M): ``ep``, ``et`` the state error e⁻ (after ``step``: of the next prediction) of a
+    State (n, M): ``ep``, ``et`` the state error e⁻ (after a step: of the next prediction) of a
     unit jump at each hypothesised onset, ``d`` and ``c`` the sums d_θ and C_θ; ``slot`` the ring
     position of the newest onset.
     """
@@ -77,36 +63,3 @@ class OnsetDetector(Stateful):
         self.d, self.c = np.zeros((self.n, m)), np.zeros((self.n, m))
         self.slot = 0
         self.alarms = 0
-
-    def step(self, nu: np.ndarray, R: np.ndarray, s: np.ndarray, k2: np.ndarray, h: float) -> Jump | None:
-        """Add one sample's innovation to every hypothesis; the accepted jumps, if any.
-
-        ``nu``: innovation (n,) N·m·s; ``R``: measurement variance (n,); ``s``: S of (K3);
-        ``k2``: the τ component of the gain K (n,); ``h``: step, s. The hypotheses of the joints
-        in the returned ``Jump`` restart.
-        """
-        rho = self.ep
-        d, c = self.d, self.c
-        d += rho * (nu / s)[:, None]
-        c += rho * (rho / s[:, None])
-        et = self.et
-        et -= k2[:, None] * rho                                         # e⁺ = e⁻ − K ρ, K = [a⁻; b⁻] / S
-        ep = rho * (R / s)[:, None]                                     # 1 − K_p = R / S
-        margin = d * d
-        margin -= self.threshold * c                                    # ℓ_θ > threshold ⇔ d² > threshold C
-        jump = None
-        if margin.max() > 0.0:
-            ratio = d * d / (c + 1e-300)                                # ℓ_θ (0 where no data yet)
-            joints = np.flatnonzero(ratio.max(axis=1) > self.threshold)
-            theta = ratio[joints].argmax(axis=1)
-            information = c[joints, theta]
-            jump = Jump(joints, ep[joints, theta], et[joints, theta], d[joints, theta] / information, information)
-            ep[joints], et[joints] = 0.0, 0.0                           # no hypothesis spans the correction
-            d[joints], c[joints] = 0.0, 0.0
-            self.alarms += len(joints)
-        ep += h * et                                                    # e⁻_k+1 = F e⁺_k
-        self.ep = ep
-        j = self.slot                                                   # newest onset replaces the oldest
-        ep[:, j], et[:, j], d[:, j], c[:, j] = 0.0, 1.0, 0.0, 0.0
-        self.slot = (j + 1) % d.shape[1]
-        return jump

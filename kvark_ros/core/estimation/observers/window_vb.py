@@ -19,6 +19,9 @@ returns to the prior:
 
 with m = L / S samples between closing windows. ``filter.vb_iterations`` does not apply: the
 statistic comes from samples already filtered.
+
+Here: the component's constants and state; its arithmetic runs in the compiled step (``step_kernel.kvark_step``),
+its numpy reference is ``ReferenceWindowVB`` in test/core/reference_filter.py.
 """
 from __future__ import annotations
 
@@ -36,7 +39,7 @@ class WindowVB(Stateful):
     State (arrays (n,) or (n, S)): ``z`` ẑ_j N·m, ``zz`` Var z_j N²·m², ``pz`` and ``tz``
     Cov(p, z_j) N·m²·s and Cov(τ, z_j) N²·m², ``age`` (S,) seconds since snapshot j, ``q`` the
     current density estimate N²·m²/s, ``scale``/``dof`` the forgotten data parts of Υ and λ.
-    Per step the filter calls ``predict`` before and ``update`` after its own (p, τ) update.
+    Per step the filter predicts the snapshots before and updates them after its own (p, τ) update (module docstring).
     """
 
     STATE = ("z", "zz", "pz", "tz", "age", "count", "q", "scale", "dof")
@@ -59,48 +62,3 @@ class WindowVB(Stateful):
         self.q = self.q0.copy()
         self.scale = np.zeros(self.n)
         self.dof = 0.0
-
-    def predict(self, h: float, tau: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-        """Predict the snapshot covariances over the step h; returns Σ_d = q h (n,) for (K2).
-
-        ``tau``, ``b``, ``c``: the filter's posterior at k−1 (τ̂ and P_pτ, P_ττ), (n,); all
-        snapshots start there at the first step.
-        """
-        if self.z is None:                                             # all snapshots start at τ̂_0
-            ones = np.ones((self.n, WINDOW_SNAPSHOTS))
-            self.z, self.zz = ones * tau[:, None], ones * c[:, None]
-            self.pz, self.tz = ones * b[:, None], ones * c[:, None]
-        self.pz = self.pz + h * self.tz                                # Cov(p⁻, z) = (F P)_pz
-        return self.q * h
-
-    def update(self, h: float, nu: np.ndarray, s: np.ndarray, k1: np.ndarray, k2: np.ndarray, tau: np.ndarray,
-               b: np.ndarray, c: np.ndarray) -> np.ndarray:
-        """Update the snapshots with the filter's gain and close a window every m samples.
-
-        ``nu``: innovation (n,) N·m·s; ``s``: its variance S; ``k1``, ``k2``: the gain K = [k1; k2];
-        ``tau``, ``b``, ``c``: the filter's posterior at k. Returns Σ_d = q h (n,), N²·m².
-        """
-        pz, tz = self.pz, self.tz
-        gain_z = pz / s[:, None]                                       # K for z: Cov(z, p⁻) / S
-        self.z = self.z + gain_z * nu[:, None]
-        self.zz = self.zz - pz * gain_z                                # P_zz − Cov(z, p⁻)² / S
-        self.tz = tz - k2[:, None] * pz                                # Cov(x⁺, z) = Cov(x⁻, z) − K Cov(p⁻, z)
-        self.pz = pz - k1[:, None] * pz
-        self.age = self.age + h
-        self.count += 1
-        stride, snapshots, q0 = self.stride, WINDOW_SNAPSHOTS, self.q0
-        if self.count % stride == 0:
-            j = (self.count // stride) % snapshots
-            if self.count >= stride * snapshots:                       # snapshot j spans a whole window
-                delta = tau - self.z[:, j]
-                stat = (delta * delta + c + self.zz[:, j] - 2.0 * self.tz[:, j]) / self.age[j]
-                forget = self.forgetting ** stride
-                self.scale = forget * self.scale + np.maximum(stat, 0.0) / snapshots   # eq. 38
-                self.dof = forget * self.dof + 1.0 / snapshots                         # eq. 37
-                dof = self.prior_dof
-                q = (dof * q0 + self.scale) / (dof + self.dof)                         # eq. 39
-                self.q = np.minimum(q, WINDOW_MAX_RATIO * q0)
-            self.z[:, j], self.zz[:, j] = tau, c                       # new snapshot z_j = τ_k
-            self.pz[:, j], self.tz[:, j] = b, c
-            self.age[j] = 0.0
-        return self.q * h

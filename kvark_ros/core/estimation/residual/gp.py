@@ -61,12 +61,12 @@ KERNEL_JITTER_REL = 1e-8
 _AMPLITUDE_BOUNDS = (1e-4, 1e4)
 _NOISE_BOUNDS = (1e-8, 1e1)
 # Upper bound of the length scale, relative to the velocity range of the joint.
-_MAX_LENGTH_SCALE_REL = 10.0
+MAX_LENGTH_SCALE_REL = 10.0
 # Lower bound of the sparse GP's length scale, relative to the velocity range (the raw data
 # can resolve short scales; this only keeps the optimiser away from degenerate values).
-_MIN_LENGTH_SCALE_REL = 1e-3
+MIN_LENGTH_SCALE_REL = 1e-3
 
-_GP_HYPER_KEYS = ("length_scale", "sigma_f2", "noise_var")
+GP_HYPER_KEYS = ("length_scale", "sigma_f2", "noise_var")
 
 
 # --------------------------------------------------------------------------------------------
@@ -88,7 +88,7 @@ class GPHyperparameters:
     noise_var: np.ndarray
 
     def __post_init__(self) -> None:
-        freeze_positive_vectors(self, _GP_HYPER_KEYS)
+        freeze_positive_vectors(self, GP_HYPER_KEYS)
 
     @property
     def n_joints(self) -> int:
@@ -97,11 +97,11 @@ class GPHyperparameters:
 
     def as_dict(self) -> dict[str, list[float]]:
         """Plain lists, for YAML headers and reports."""
-        return {key: getattr(self, key).tolist() for key in _GP_HYPER_KEYS}
+        return {key: getattr(self, key).tolist() for key in GP_HYPER_KEYS}
 
 
 @dataclass(frozen=True)
-class _SEFit:
+class SEFit:
     """Result of one marginal-likelihood fit of an SE + white-noise GP to 1-D data."""
 
     length_scale: float
@@ -111,8 +111,8 @@ class _SEFit:
     length_scale_at_lower_bound: bool
 
 
-def _fit_se_gp(x: np.ndarray, y: np.ndarray, length_scale_bounds: tuple[float, float],
-               seed: int, n_restarts: int = 2) -> _SEFit:
+def fit_se_gp(x: np.ndarray, y: np.ndarray, length_scale_bounds: tuple[float, float],
+              seed: int, n_restarts: int = 2) -> SEFit:
     """Fit σf², length scale and σn² of a zero-mean SE GP to (x, y) by maximum marginal
     likelihood (``gp_fit.fit_gp``: L-BFGS-B with restarts, as sklearn's GaussianProcessRegressor).
 
@@ -132,14 +132,14 @@ def _fit_se_gp(x: np.ndarray, y: np.ndarray, length_scale_bounds: tuple[float, f
     from kvark_ros.core.estimation.residual.gp_fit import fit_gp    # training only: scipy.optimize is not the node's
     fit = fit_gp(x[:, None], y / scale, theta0, bounds, n_restarts, seed)
     length_scale = float(fit.length_scale[0])
-    return _SEFit(length_scale=length_scale,
-                  sigma_f2=fit.sigma_f2 * scale ** 2,
-                  noise_var=fit.noise_var * scale ** 2,
-                  log_marginal_likelihood=fit.log_marginal_likelihood,
-                  length_scale_at_lower_bound=bool(length_scale <= low * (1.0 + 1e-6)))
+    return SEFit(length_scale=length_scale,
+                 sigma_f2=fit.sigma_f2 * scale ** 2,
+                 noise_var=fit.noise_var * scale ** 2,
+                 log_marginal_likelihood=fit.log_marginal_likelihood,
+                 length_scale_at_lower_bound=bool(length_scale <= low * (1.0 + 1e-6)))
 
 
-class _KernelPredictor:
+class KernelPredictor:
     """Shared hot path of the two GP models.
 
     Per joint j the prediction at q̇ is, with e = exp(−(q̇ − c)²/(2ℓ²)) the unscaled kernel
@@ -211,12 +211,13 @@ class _KernelPredictor:
         return mean, var
 
 
-def _se_gram(a: np.ndarray, b: np.ndarray, length_scale: float, sigma_f2: float) -> np.ndarray:
+def se_gram(a: np.ndarray, b: np.ndarray, length_scale: float, sigma_f2: float) -> np.ndarray:
     """SE kernel matrix between 1-D inputs a (A,) and b (B,)."""
     return sigma_f2 * np.exp(-0.5 * ((a[:, None] - b[None, :]) / length_scale) ** 2)
 
 
-def _cholesky(matrix: np.ndarray, what: str) -> np.ndarray:
+def cholesky(matrix: np.ndarray, what: str) -> np.ndarray:
+    """Lower Cholesky factor of ``matrix``; ResidualModelError naming ``what`` if it is not positive definite."""
     try:
         return scipy.linalg.cholesky(matrix, lower=True)
     except np.linalg.LinAlgError as exc:
@@ -237,14 +238,14 @@ def gmr_sample_noise(n: int, n_support: int, samples_per_support: int, seed: int
 
 
 def fit_gp_on_joint_samples(s: np.ndarray, mu: np.ndarray, sigma2: np.ndarray, noise: np.ndarray,
-                            seed: int) -> tuple[_SEFit, np.ndarray]:
+                            seed: int) -> tuple[SEFit, np.ndarray]:
     """One joint of ``_fit_gp_on_gmr_samples``: samples y = μᵢ + σᵢ ε (ε: noise (N, m)) at the support points s (N,)
     rad/s of a GMR reference (μ, σ² (N,)), the SE GP fitted to them and their means ȳ (N,)."""
     y = mu[:, None] + np.sqrt(sigma2)[:, None] * noise
     spacing = np.max(np.diff(s))
     span = s[-1] - s[0]
-    fit = _fit_se_gp(np.repeat(s, noise.shape[1]), y.ravel(),
-                     (spacing, max(_MAX_LENGTH_SCALE_REL * span, 2.0 * spacing)), seed=seed)
+    fit = fit_se_gp(np.repeat(s, noise.shape[1]), y.ravel(),
+                    (spacing, max(MAX_LENGTH_SCALE_REL * span, 2.0 * spacing)), seed=seed)
     return fit, y.mean(axis=1)
 
 
@@ -275,7 +276,7 @@ def _fit_gp_on_gmr_samples(reference: GMRReference, samples_per_support: int, se
     return hyper, y_mean, info
 
 
-class GMRGPResidualModel(_KernelPredictor):
+class GMRGPResidualModel(KernelPredictor):
     """GMR-GP (paper v2 §V-B): exact GP trained on data sampled from the GMR reference.
 
     Training: the GMR reference {s_i, μ_i, σ²_i} (fit_gmr_reference, the same N support points
@@ -330,10 +331,10 @@ class GMRGPResidualModel(_KernelPredictor):
         eye = np.eye(n_sup)
         for j in range(n):
             sf2 = hyper.sigma_f2[j]
-            gram = _se_gram(support[j], support[j], hyper.length_scale[j], sf2)
+            gram = se_gram(support[j], support[j], hyper.length_scale[j], sf2)
             gram[np.diag_indices(n_sup)] += (hyper.noise_var[j] / self.samples_per_support
                                              + KERNEL_JITTER_REL * sf2)
-            chol = _cholesky(gram, f"joint {j}: K + σn²/m I")
+            chol = cholesky(gram, f"joint {j}: K + σn²/m I")
             chol_inv = scipy.linalg.solve_triangular(chol, eye, lower=True)
             alpha = chol_inv.T @ (chol_inv @ targets[j])
             weights[j, 0] = sf2 * alpha
@@ -370,7 +371,7 @@ class GMRGPResidualModel(_KernelPredictor):
         """Writes directory/gmr_gp.npz (support, targets, the hyperparameters and, if known,
         the GMR reference mu/sigma2) and directory/gmr_gp.yaml, each atomically."""
         arrays = {"support": self.support, "targets": self.targets}
-        arrays.update({key: getattr(self.hyper, key) for key in _GP_HYPER_KEYS})
+        arrays.update({key: getattr(self.hyper, key) for key in GP_HYPER_KEYS})
         if self.reference is not None:
             arrays.update(reference_mu=self.reference.mu, reference_sigma2=self.reference.sigma2)
         header = {
@@ -395,14 +396,14 @@ class GMRGPResidualModel(_KernelPredictor):
         header = read_model_header(yaml_path, ("n_support", "samples_per_support"), cls.name)
         n, n_sup = header["n_joints"], header["n_support"]
         shapes: dict[str, tuple[int, ...]] = {"support": (n, n_sup), "targets": (n, n_sup)}
-        shapes.update({key: (n,) for key in _GP_HYPER_KEYS})
+        shapes.update({key: (n,) for key in GP_HYPER_KEYS})
         has_reference = header.get("has_reference") is True
         if has_reference:
             shapes.update(reference_mu=(n, n_sup), reference_sigma2=(n, n_sup))
         arrays = read_arrays(npz_path, shapes)
-        check_listed_values(yaml_path, npz_path, header.get("hyperparameters"), arrays, _GP_HYPER_KEYS)
+        check_listed_values(yaml_path, npz_path, header.get("hyperparameters"), arrays, GP_HYPER_KEYS)
         try:
-            hyper = GPHyperparameters(**{key: arrays[key] for key in _GP_HYPER_KEYS})
+            hyper = GPHyperparameters(**{key: arrays[key] for key in GP_HYPER_KEYS})
             reference = (GMRReference(s=arrays["support"], mu=arrays["reference_mu"],
                                       sigma2=arrays["reference_sigma2"]) if has_reference else None)
             return cls(arrays["support"], arrays["targets"], hyper, header["samples_per_support"],

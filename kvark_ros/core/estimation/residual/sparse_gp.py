@@ -19,11 +19,12 @@ from kvark_ros.core.estimation.residual.files import (
     read_model_header,
     save_model_pair,
 )
-from kvark_ros.core.estimation.residual.gp import (_GP_HYPER_KEYS, _MAX_LENGTH_SCALE_REL, _MIN_LENGTH_SCALE_REL, KERNEL_JITTER_REL,
-                                        GPHyperparameters, _cholesky, _fit_se_gp, _KernelPredictor, _se_gram, _SEFit)
+from kvark_ros.core.estimation.residual.gp import (GP_HYPER_KEYS, KERNEL_JITTER_REL, MAX_LENGTH_SCALE_REL,
+                                                   MIN_LENGTH_SCALE_REL, GPHyperparameters, KernelPredictor, SEFit,
+                                                   cholesky, fit_se_gp, se_gram)
 
 
-class SparseGPResidualModel(_KernelPredictor):
+class SparseGPResidualModel(KernelPredictor):
     """Sparse GP residual model of the GPADKF baseline (paper v2 §V-B, Wei et al. 2023).
 
     Per joint: M = 50 inducing inputs z (k-means of the training velocities), SE kernel with
@@ -84,9 +85,9 @@ class SparseGPResidualModel(_KernelPredictor):
     def _chol_inv_kmm(self, j: int) -> np.ndarray:
         """L⁻¹ with L Lᵀ = K_mm + jitter, joint j."""
         z, sf2 = self.inducing[j], self.hyper.sigma_f2[j]
-        kmm = _se_gram(z, z, self.hyper.length_scale[j], sf2)
+        kmm = se_gram(z, z, self.hyper.length_scale[j], sf2)
         kmm[np.diag_indices(len(z))] += KERNEL_JITTER_REL * sf2
-        chol = _cholesky(kmm, f"joint {j}: K_mm")
+        chol = cholesky(kmm, f"joint {j}: K_mm")
         return scipy.linalg.solve_triangular(chol, np.eye(len(z)), lower=True)
 
     @property
@@ -139,7 +140,7 @@ class SparseGPResidualModel(_KernelPredictor):
         """Writes directory/sparse_gp.npz and directory/sparse_gp.yaml, each atomically."""
         arrays = {"inducing": self.inducing, "mean_weights": self.mean_weights,
                   "chol_a": self.chol_a}
-        arrays.update({key: getattr(self.hyper, key) for key in _GP_HYPER_KEYS})
+        arrays.update({key: getattr(self.hyper, key) for key in GP_HYPER_KEYS})
         header = {
             "format_version": FORMAT_VERSION,
             "model": self.name,
@@ -165,11 +166,11 @@ class SparseGPResidualModel(_KernelPredictor):
         n, m = header["n_joints"], header["n_inducing"]
         shapes: dict[str, tuple[int, ...]] = {
             "inducing": (n, m), "mean_weights": (n, m), "chol_a": (n, m, m)}
-        shapes.update({key: (n,) for key in _GP_HYPER_KEYS})
+        shapes.update({key: (n,) for key in GP_HYPER_KEYS})
         arrays = read_arrays(npz_path, shapes)
-        check_listed_values(yaml_path, npz_path, header.get("hyperparameters"), arrays, _GP_HYPER_KEYS)
+        check_listed_values(yaml_path, npz_path, header.get("hyperparameters"), arrays, GP_HYPER_KEYS)
         try:
-            hyper = GPHyperparameters(**{key: arrays[key] for key in _GP_HYPER_KEYS})
+            hyper = GPHyperparameters(**{key: arrays[key] for key in GP_HYPER_KEYS})
             return cls(arrays["inducing"], arrays["mean_weights"], arrays["chol_a"], hyper,
                        header.get("approximation"), metadata=header["metadata"])
         except ResidualModelError as exc:
@@ -177,26 +178,26 @@ class SparseGPResidualModel(_KernelPredictor):
 
 
 def _fit_joint(x: np.ndarray, y: np.ndarray, subset: np.ndarray, n_inducing: int, approximation: str, seed: int,
-               n_restarts: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, _SEFit]:
+               n_restarts: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, SEFit]:
     """One joint of ``SparseGPResidualModel.fit`` from its q̇ x (T,) rad/s and τ_r y (T,) N·m: the sorted inducing
     inputs z (M,), the mean weights c (M,), L_A (M, M) and the GP fitted on the rows ``subset``."""
     from sklearn.cluster import KMeans          # fitting only: loading a model needs no sklearn
     z = np.sort(KMeans(n_clusters=n_inducing, n_init=3, random_state=seed).fit(x[:, None]).cluster_centers_[:, 0])
     span = x.max() - x.min()
-    fit = _fit_se_gp(x[subset], y[subset], (_MIN_LENGTH_SCALE_REL * span, _MAX_LENGTH_SCALE_REL * span),
-                     seed=seed, n_restarts=n_restarts)
+    fit = fit_se_gp(x[subset], y[subset], (MIN_LENGTH_SCALE_REL * span, MAX_LENGTH_SCALE_REL * span),
+                    seed=seed, n_restarts=n_restarts)
     return (z,) + _sparse_factors(x, y, z, fit, approximation) + (fit,)
 
 
-def _sparse_factors(x: np.ndarray, y: np.ndarray, z: np.ndarray, fit: _SEFit,
+def _sparse_factors(x: np.ndarray, y: np.ndarray, z: np.ndarray, fit: SEFit,
                     approximation: str) -> tuple[np.ndarray, np.ndarray]:
     """Mean weights c (M,) and L_A (M, M) of the FITC/DTC posterior on all data (x, y)."""
     sf2, ls, noise = fit.sigma_f2, fit.length_scale, fit.noise_var
     m = len(z)
-    kmm = _se_gram(z, z, ls, sf2)
+    kmm = se_gram(z, z, ls, sf2)
     kmm[np.diag_indices(m)] += KERNEL_JITTER_REL * sf2
-    chol = _cholesky(kmm, "K_mm")
-    v = scipy.linalg.solve_triangular(chol, _se_gram(z, x, ls, sf2), lower=True)  # (M, T)
+    chol = cholesky(kmm, "K_mm")
+    v = scipy.linalg.solve_triangular(chol, se_gram(z, x, ls, sf2), lower=True)  # (M, T)
     if approximation == "fitc":
         lam = np.maximum(sf2 - np.einsum("mt,mt->t", v, v), 0.0) + noise
     else:
@@ -204,7 +205,7 @@ def _sparse_factors(x: np.ndarray, y: np.ndarray, z: np.ndarray, fit: _SEFit,
     v_scaled = v / lam  # V Λ⁻¹
     a = v_scaled @ v.T
     a[np.diag_indices(m)] += 1.0
-    chol_a = _cholesky(a, "I + V Λ⁻¹ Vᵀ")
+    chol_a = cholesky(a, "I + V Λ⁻¹ Vᵀ")
     u = scipy.linalg.cho_solve((chol_a, True), v_scaled @ y)  # A⁻¹ V Λ⁻¹ y
     c = scipy.linalg.solve_triangular(chol, u, lower=True, trans="T")  # L⁻ᵀ …
     return c, np.tril(chol_a)

@@ -86,6 +86,11 @@ class Key:
                 "vector3": "a list of 3 numbers",
                 "vector6": "a list of 6 numbers [ixx, iyy, izz, ixy, ixz, iyz]"}[self.kind]
 
+    @property
+    def documented(self) -> str:
+        """What the key accepts, as the generated README table, config comments and settings say it."""
+        return _OPEN_CHOICES.get(self.name, self.allowed)
+
     def check(self, value: Any) -> bool:
         """Whether ``value`` (as YAML or a ROS parameter gives it) is allowed."""
         if self.kind in ("number", "integer"):
@@ -238,7 +243,7 @@ def keys_table() -> str:
     rows = ["| key | allowed | default | run time | meaning |", "|---|---|---|---|---|"]
     for key in KEYS:
         default = "required" if key.default is None else f"`{key.default!r}`".replace("'", "")
-        rows.append(f"| `{key.name}` | {key.allowed} | {default} | {'yes' if key.runtime else 'no'} | "
+        rows.append(f"| `{key.name}` | {key.documented} | {default} | {'yes' if key.runtime else 'no'} | "
                     f"{key.meaning} |")
     return "\n".join(rows)
 
@@ -249,8 +254,10 @@ CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 REGENERATE = "make generated (python -m kvark_ros.core.config_schema --write-settings --write-configs)"
 COMMENT_WIDTH = 110                        # generated comment lines of a config file
 _SOURCE_WIDTH = 120
-# Choices that are another table's names stay ``str``, so that table grows without regenerating (observer_catalog).
-_OPEN_CHOICES = ("observer",)
+# Choices that are another table's names: their type stays ``str`` and the generated text (README table, config
+# comments, settings) names that table instead of listing it, so the table grows without regenerating; errors and
+# ROS descriptors still list every name (``Key.allowed``).
+_OPEN_CHOICES = {"observer": "an observer of core/observer_catalog.py (kvark replay --help lists them)"}
 
 
 def settings_class(group: str) -> str:
@@ -260,7 +267,7 @@ def settings_class(group: str) -> str:
 
 def describe(key: Key, default: bool = True) -> str:
     """A key's comment: its meaning, what it accepts, its default (``default``) and whether it changes at run time."""
-    text = f"{key.meaning}. Allowed: {key.allowed}."
+    text = f"{key.meaning}. Allowed: {key.documented}."
     if default:
         text += " Required." if key.default is None else f" Default: {flow_value(key.default)}."
     return text + (" Can be changed while the node runs." if key.runtime else "")

@@ -175,8 +175,8 @@ class EstimatorConfig:
     """augmentation.yaml of kvark diagnose for kvark train; at estimation it must be the model directory's copy ('' =
     that copy). Allowed: a path, or '' for none."""
     observer: str = "kvark"
-    """observer name (README, Observers). Allowed: one of kvark, kf, kmp_kf, kmp_kf_ewma, kmp_kf_nis, gmr_gp, gpadkf,
-    nnadkf, momentum, kfmo, sh_akfmo, vbkfmo_q, eso, oracle."""
+    """observer name (README, Observers). Allowed: an observer of core/observer_catalog.py (kvark replay --help lists
+    them)."""
     payload: Payload | None = None
     """the robot_model.payload.* keys: the known payload at the flange, or None when its mass is 0"""
     wrench: WrenchSettings = field(default_factory=WrenchSettings)

@@ -89,7 +89,7 @@ def test_every_key_is_commented_with_its_meaning_and_allowed_values(tmp_path):
                 break
             comment.insert(0, line.strip()[2:])
         text = " ".join(comment)
-        assert key.meaning in text and f"Allowed: {key.allowed}." in text, key.name
+        assert key.meaning in text and f"Allowed: {key.documented}." in text, key.name
     assert all(len(line) <= 110 for line in lines)
     assert _parameters(out)["robot_model.ee_frame"] == "tool0"           # the deepest link, as config/ur5.yaml
     assert _parameters(out)["residual_model.model_dir"] == "models/ur"

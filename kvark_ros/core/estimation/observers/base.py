@@ -154,7 +154,7 @@ class Observer(Stateful, ABC):
     def configure(self, settings: FilterSettings) -> None:
         """Apply new filter settings at run time (the ROS node's parameter changes).
 
-        Keys marked run-time in ``config_schema.KEYS`` (``filter.ewma_rate``, ``filter.nis_rate``)
+        Keys marked run-time in ``config_schema.KEYS`` (``filter.ewma_time``, ``filter.nis_time``)
         take effect from the next step; any other key that differs from the observer's raises
         ``ValueError`` naming it: it shapes the filter, so the observer must be rebuilt.
         """

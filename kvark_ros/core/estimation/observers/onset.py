@@ -13,7 +13,7 @@ of ``momentum_observers``,
 
 with ν⁰ white, variance S_k (K3). The generalized likelihood ratio (Willsky & Jones, IEEE TAC
 1976) maximises over Δ in closed form and over θ in a window of the last M samples
-(``filter.onset_window``):
+(``filter.onset_window_time`` / t_s):
 
     d_θ = Σ_k ρ_k ν_k / S_k,   C_θ = Σ_k ρ_k² / S_k,   Δ̂_θ = d_θ / C_θ,   ℓ_θ = d_θ² / C_θ
 

@@ -10,7 +10,7 @@ included, comes from the ordinary update; the (p, τ) estimate is unchanged by t
 taken t_j seconds ago gives the density statistic
 ``s_j = ((τ̂_k − ẑ_j)² + P_ττ + P_zz − 2 P_τz) / t_j`` (N²·m²/s). The IW posterior (eqs. 36-39,
 n = 1 per joint) with prior mean q_0 (training, Σ_d0 = q_0 h) and dof ν_0 (``filter.vb_prior_dof``),
-forgetting ρ per sample (``filter.vb_forgetting``) applied to the data part only, so that Σ_d
+forgetting ρ = 1 − t_s/T per sample (T = ``filter.vb_memory``) applied to the data part only, so that Σ_d
 returns to the prior:
 
     λ_k = ν_0 + 2 + ρ^m (λ_{k−m} − ν_0 − 2) + 1/S          (eq. 37; windows overlap S-fold)

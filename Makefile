@@ -74,9 +74,10 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 ## generated: after a change to the key table (kvark_ros/core/config_schema.py), write what it generates: the typed
-## settings (kvark_ros/core/settings.py) and the key comments of config/*.yaml (values, notes and prose kept)
+## settings (kvark_ros/core/settings.py), the key comments of config/*.yaml (values, notes and prose kept) and
+## README's table of keys
 generated: $(STAMP)
-	$(BIN)/python -m kvark_ros.core.config_schema --write-settings --write-configs
+	$(BIN)/python -m kvark_ros.core.config_schema --write-settings --write-configs --write-readme README.md
 
 ## versions: the interpreter and the installed versions the figures depend on
 versions: $(STAMP)

@@ -494,6 +494,17 @@ def _write(path: Path, text: str) -> None:
         print(f"{path}: up to date")
 
 
+def readme_with_keys_table(text: str) -> str:
+    """``text`` (the README) with its table of keys (the lines from the table's header row) made ``keys_table()``."""
+    header = keys_table().splitlines()[0]
+    if header not in text:
+        raise ValueError(f"the README has no table of keys (a line {header!r})")
+    start = text.index(header)
+    end = text.find("\n\n", start)
+    end = len(text.rstrip("\n")) if end < 0 else end
+    return text[:start] + keys_table() + text[end:]
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m kvark_ros.core.config_schema``: write the sources generated from the key table."""
     parser = argparse.ArgumentParser(prog="python -m kvark_ros.core.config_schema",
@@ -502,14 +513,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--write-configs", nargs="*", metavar="FILE",
                         help="rewrite the key comments of config files, keeping their values, notes and prose "
                              f"(default: {CONFIG_DIR}/*.yaml)")
+    parser.add_argument("--write-readme", type=Path, metavar="README",
+                        help="replace the table of keys in this README.md by `kvark config --keys`")
     args = parser.parse_args(argv)
-    if not args.write_settings and args.write_configs is None:
-        parser.error("give --write-settings and/or --write-configs")
+    if not args.write_settings and args.write_configs is None and args.write_readme is None:
+        parser.error("give --write-settings, --write-configs and/or --write-readme")
     if args.write_settings:
         _write(SETTINGS_PATH, settings_source())
     if args.write_configs is not None:
         for path in map(Path, args.write_configs or sorted(CONFIG_DIR.glob("*.yaml"))):
             _write(path, regenerated_config_text(path.read_text(), str(path)))
+    if args.write_readme is not None:
+        _write(args.write_readme, readme_with_keys_table(args.write_readme.read_text()))
     return 0
 
 

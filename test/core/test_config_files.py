@@ -9,8 +9,8 @@ import pytest
 import yaml
 
 from kvark_ros.core.config import ConfigError, EstimatorConfig, FilterSettings, load_config
-from kvark_ros.core.config_schema import (KEYS, KEYS_BY_NAME, comment_lines, describe, parse_config_text,
-                                          regenerated_config_text)
+from kvark_ros.core.config_schema import (KEYS, KEYS_BY_NAME, comment_lines, describe, keys_table, parse_config_text,
+                                          readme_with_keys_table, regenerated_config_text)
 from kvark_ros.core.settings import SETTINGS_BY_GROUP
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -147,3 +147,14 @@ def test_regenerating_refuses_a_file_with_an_unknown_key():
     text = (ROOT / "config" / "panda.yaml").read_text().replace("      ewma_time: 0.2\n", "      ewma_rate: 0.01\n")
     with pytest.raises(ValueError, match="unknown key 'filter.ewma_rate'"):
         regenerated_config_text(text)
+
+
+def test_the_readme_table_of_keys_is_replaced_whole_and_a_readme_without_one_is_refused():
+    """``make generated`` rewrites README's table of keys from the table, leaving the text around it."""
+    stale = ("intro\n\n| key | allowed | default | run time | meaning |\n|---|---|---|---|---|\n"
+             "| `old` | x | y | no | z |\n\nafter\n")
+    fresh = readme_with_keys_table(stale)
+    assert fresh == "intro\n\n" + keys_table() + "\n\nafter\n"
+    assert readme_with_keys_table(fresh) == fresh
+    with pytest.raises(ValueError, match="no table of keys"):
+        readme_with_keys_table("intro\n")

@@ -7,6 +7,7 @@ from typing import Sequence
 
 import numpy as np
 
+from kvark_ros.core.effect_catalog import PRIOR_BOUNDED
 from kvark_ros.core.estimation.payload import inertia_problem
 from kvark_ros.gap.effects import Priors, Term
 from kvark_ros.gap.fitting import Fitter
@@ -22,13 +23,13 @@ def at_bounds(term: Term, theta: np.ndarray, priors: Priors) -> np.ndarray:
 
 
 def without_saturated(fitter: Fitter, terms: Sequence[Term], term: Term, *fit: np.ndarray) -> tuple:
-    """A drive-gain or joint-offset candidate without the joints whose parameter sits at its prior's bound,
+    """A drive-gain or joint-offset candidate (``PRIOR_BOUNDED``) without the joints whose θ sits at its prior's bound,
     refitted (repeatedly, until none does).
 
     A gain or offset at the bound is another effect seen through τ_m or through gravity (on a light wrist joint
     τ_m is mostly friction; a heavier link looks like an encoder offset); left in, it would stand for that
     effect with an implausible value and hide real gains or offsets on the other joints."""
-    while term.name in ("drive_gain", "joint_offset"):
+    while term.name in PRIOR_BOUNDED:
         pos = sum(t.size for t in terms)
         saturated = at_bounds(term, fit[0][pos:pos + term.size], fitter.priors)
         keep = tuple(j for j, bad in zip(term.joints, saturated) if not bad)
@@ -44,7 +45,7 @@ def saturated_joints(fitter: Fitter, terms: Sequence[Term], theta: np.ndarray) -
     its prior (``without_saturated``'s rule, for effects that reached the bound only when later ones joined)."""
     pos = 0
     for index, term in enumerate(terms):
-        if term.name in ("drive_gain", "joint_offset"):
+        if term.name in PRIOR_BOUNDED:
             bound = at_bounds(term, theta[pos:pos + term.size], fitter.priors)
             if np.any(bound):
                 return index, tuple(j for j, hit in zip(term.joints, bound) if hit)
@@ -112,6 +113,6 @@ def inadmissible(fitter: Fitter, terms: Sequence[Term], term: Term, theta: np.nd
         index, body, problem = bad[0]
         name = [*terms, term][index].name
         return f"{'flange link' if name == 'payload' else f'link of {names[body]}'}: {problem}"
-    if term.name in ("drive_gain", "joint_offset") and np.all(at_bounds(term, mine, fitter.priors)):
+    if term.name in PRIOR_BOUNDED and np.all(at_bounds(term, mine, fitter.priors)):
         return f"{term.name} at the bound of its prior on every joint"
     return None

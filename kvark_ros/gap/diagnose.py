@@ -35,10 +35,11 @@ import argparse
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
+from kvark_ros.core.effect_catalog import BODY_EFFECTS, EFFECT_NAMES, PER_JOINT
 from kvark_ros.core.estimation.augmentation import load_augmentation
 from kvark_ros.core.config import ConfigError, EstimatorConfig, load_config
 from kvark_ros.core.estimation.inputs import EstimatorInputs
@@ -48,8 +49,6 @@ from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.learning.training import SAVGOL_WINDOW, smoothed_signals, train_model
 from kvark_ros.core.estimation.robot_model import flange_link_parameters
 from kvark_ros.gap.effects import (
-    EFFECT_NAMES,
-    PER_JOINT,
     Priors,
     Signals,
     Term,
@@ -73,6 +72,9 @@ from kvark_ros.gap.plausibility import (
     theta_split,
 )
 from kvark_ros.io.alignment import load_recordings
+
+if TYPE_CHECKING:
+    from kvark_ros.cli import SubParsers
 
 HOLDOUT = 0.3            # share of every recording (its end) held out
 MIN_REDUCTION = 0.05     # an effect must cut the held-out gap of its joints by ≥ 5 %
@@ -115,7 +117,7 @@ def _screen(name: str, variant: dict, fitter: Fitter, terms: Sequence[Term], r_h
     """Candidate joint set of one effect variant: the payload acts on every joint, a coupled effect
     is screened by ``_screen_coupled``, a per-joint effect keeps the joints whose held-out gap
     drops enough when it is added on that joint alone and everything is refitted."""
-    if name in ("payload", "link_inertia"):
+    if name in BODY_EFFECTS:
         return Term(name, tuple(range(n)), variant)
     if name not in PER_JOINT:
         return _screen_coupled(name, variant, fitter, terms, n)
@@ -376,7 +378,7 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         cv = None if cov is None else cov[pos:pos + term.size, pos:pos + term.size]
         pos += term.size
         params, ci = physical_parameters(term, th, cv)
-        joints = list(term.joints) if term.name not in ("payload", "link_inertia") else info["affected"]
+        joints = list(term.joints) if term.name not in BODY_EFFECTS else info["affected"]
         if term.name == "payload":
             params.update(flange_change(fitter.flange, fitter.flange_map, term.full_theta(th)))
         result_effects.append({"name": term.name, "joints": [int(j) for j in joints], "parameters": params,
@@ -430,7 +432,7 @@ def train_on_diagnosis(config: EstimatorConfig, robot: RobotModel, segments: Seq
                      "gap_after": diagnosis.result["gap_after"]["joint_rmse_mean"]}
 
 
-def add_parser(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "diagnose", help="name the physical effects the nominal model lacks, from contact-free bags",
         description="Compute the gap τ_m − τ_EL between the commanded torque and the nominal model on "

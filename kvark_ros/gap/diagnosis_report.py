@@ -86,8 +86,8 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
 
 def augmentation(diag: Diagnosis, robot: RobotModel, robot_name: str = "") -> dict:
     """The accepted effects as a plain mapping (``augmentation.yaml``); diagnosed against an augmented ``robot``, the
-    base augmentation's effects come first and the new ones add to them (``core.estimation.augmentation``), so the file is
-    the whole correction relative to the URDF."""
+    base augmentation's effects come first and the new ones add to them (``core.estimation.augmentation``), so the file
+    is the whole correction relative to the URDF."""
     entries = []
     if robot.augmentation is not None:
         entries += list((yaml.safe_load(robot.augmentation.text) or {}).get("effects") or [])

@@ -22,26 +22,24 @@ the sign chosen so that θ is the physical parameter (sign conventions of ``kvar
 * ``position_ripple``   the drive applies ``a sin(k q) + b cos(k q)``: gap ``−(a sin + b cos)``;
 * ``joint_offset``      the encoder reads ``q + δ``: gap ``−∂τ_EL/∂q_j δ_j`` (first order: gravity,
   inertia and Coriolis sensitivity, pinocchio's RNEA derivatives).
+
+The effects, their order, parameters, bounds and grids are the lines of ``core.effect_catalog``; the torque
+effects' columns are ``core.estimation.augmentation.joint_columns``, the structural ones' regressors are here.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import product
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 import pinocchio as pin
 
-from kvark_ros.core.estimation.augmentation import TANH_EPSILON, joint_columns
+# The library is ``core.effect_catalog`` (one line an effect); EFFECT_NAMES and PER_JOINT are re-exported from it.
+from kvark_ros.core.effect_catalog import EFFECT_NAMES, EFFECTS_BY_NAME, PER_JOINT  # noqa: F401
+from kvark_ros.core.estimation.augmentation import joint_columns
 from kvark_ros.core.estimation.robot_model import RobotModel
 
-EFFECT_NAMES = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "payload",
-                "link_inertia", "drive_gain", "torque_offset", "position_ripple", "joint_offset")
-PER_JOINT = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "drive_gain",
-             "torque_offset", "position_ripple")
-STRIBECK_VELOCITIES = (0.03, 0.1, 0.3)        # rad/s, grid of v_s
-COULOMB_WIDTHS = (0.02, 0.05, 0.1, 0.2)       # rad/s, grid of ε
-RIPPLE_CYCLES = (2, 3, 4, 6, 8, 12, 16, 24, 32, 50, 64, 100)   # cycles per revolution, grid of k
-PAYLOAD_PARAMETERS = ("mass", "mx", "my", "mz", "ixx", "ixy", "iyy", "ixz", "iyz", "izz")
 MIN_MASS = 1e-3                               # kg, smallest total mass of the flange's link
 # Prior standard deviations of link_inertia (CAD-like errors): mass 20 % of the link's, first moment
 # m·3 cm + 20 %, second moments 30 % of the link's largest moment about its origin.
@@ -60,6 +58,7 @@ class Priors:
     flange_mass: the URDF's mass of the flange's link with what is fixed to it (kg); a tool mismatch can
         remove at most that.
     payload_com: a payload's known centre of mass (flange frame, m): only its mass and inertia are fitted.
+    An effect's ``prior`` in ``core.effect_catalog`` names the field that bounds its |θ|.
     """
 
     max_gain_error: float = 0.1
@@ -158,12 +157,8 @@ class Term:
 
     @property
     def per_joint_parameters(self) -> tuple[str, ...]:
-        """Names of the parameters each joint carries (payload: of the whole body)."""
-        return {"coulomb_friction": ("coulomb",), "viscous_friction": ("viscous",),
-                "stribeck_friction": ("static_minus_coulomb",), "armature": ("armature",),
-                "drive_gain": ("gain_error_neg",), "torque_offset": ("offset",),
-                "position_ripple": ("sin_amplitude", "cos_amplitude"), "joint_offset": ("offset",),
-                "payload": PAYLOAD_PARAMETERS, "link_inertia": PAYLOAD_PARAMETERS}[self.name]
+        """Names of the parameters each joint carries (payload: of the whole body), from the catalog."""
+        return EFFECTS_BY_NAME[self.name].parameters
 
     @property
     def size(self) -> int:
@@ -196,14 +191,14 @@ class Term:
     def bounds(self, priors: Priors) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper bounds of θ (size,) under ``priors``."""
         lo, hi = np.full(self.size, -np.inf), np.full(self.size, np.inf)
-        if self.name in ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature"):
+        entry = EFFECTS_BY_NAME[self.name]
+        if entry.nonnegative:
             lo[:] = 0.0
         elif self.name == "payload":      # the link's total mass stays positive
             lo[0] = MIN_MASS - priors.flange_mass
-        elif self.name == "drive_gain":   # θ = 1 − g
-            lo[:], hi[:] = -priors.max_gain_error, priors.max_gain_error
-        elif self.name == "joint_offset":
-            lo[:], hi[:] = -priors.max_joint_offset, priors.max_joint_offset
+        elif entry.prior:                 # |θ| ≤ the prior's bound (drive_gain: θ = 1 − g)
+            bound = getattr(priors, entry.prior)
+            lo[:], hi[:] = -bound, bound
         return lo, hi
 
     def design(self, s: Signals) -> np.ndarray:
@@ -236,13 +231,8 @@ def variants(name: str, priors: Priors | None = None) -> list[dict[str, float]]:
     """The fixed settings an effect is tried with (a payload's known CoM comes from ``priors``)."""
     if name == "payload" and priors is not None and priors.payload_com is not None:
         return [dict(zip(("com_x", "com_y", "com_z"), map(float, priors.payload_com)))]
-    if name == "stribeck_friction":
-        return [{"stribeck_velocity": v, "epsilon": TANH_EPSILON} for v in STRIBECK_VELOCITIES]
-    if name == "position_ripple":
-        return [{"cycles_per_rev": float(k)} for k in RIPPLE_CYCLES]
-    if name == "coulomb_friction":
-        return [{"epsilon": eps} for eps in COULOMB_WIDTHS]
-    return [{}]
+    grid = EFFECTS_BY_NAME[name].grid        # every combination of the catalog's grid, its keys in order
+    return [dict(zip(grid, map(float, values))) for values in product(*grid.values())]
 
 
 def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None) -> tuple[dict, dict]:

@@ -65,7 +65,8 @@ def plausibility_warnings(terms: Sequence[Term], thetas: Sequence[np.ndarray], p
 def flange_change(flange: np.ndarray, flange_map: np.ndarray, theta: np.ndarray) -> dict:
     """The payload effect θ (10,) in the flange frame as a change of the flange link (``flange``: its URDF
     parameters, joint frame; ``flange_map``: flange → joint frame): kind, mass change, total mass and whether the
-    changed link is physically consistent (``core.estimation.payload.inertia_problem``, the check the selection applies)."""
+    changed link is physically consistent (``core.estimation.payload.inertia_problem``, the check the selection
+    applies)."""
     total = flange + flange_map @ theta
     kind = ("tool mismatch: the robot's flange link is lighter than the URDF's (its tool is not the URDF's)"
             if theta[0] < 0.0 else "unmodelled payload or tool at the flange")

@@ -1,9 +1,9 @@
-"""The compiled step (``filter.kernel: numba``) against the numpy reference, on the committed bags and at rest.
+"""The compiled step against the numpy reference (reference_filter.py), on the committed bags and at rest.
 
-The kernels (``core/estimation/step_kernel.py``) do the reference's arithmetic in the same order, but sums run in another order
-than BLAS's, ``exp`` is libm's rather than numpy's and the Cholesky factors are the kernel's rather than LAPACK's:
-measured on the bags, τ̂, P, F and Σ_F differ by at most 1.5e-14 of each one's largest value over the bag (1.6e-13
-on the UR5's bench stream, whose heavier links give larger momenta, the rounding of which τ̂ differentiates).
+The kernels (``core/estimation/step_kernel.py``) do the reference's arithmetic in the same order, but sums run in
+another order than BLAS's, ``exp`` is libm's rather than numpy's and the Cholesky factors are the kernel's rather than
+LAPACK's: measured on the bags, τ̂, P, F and Σ_F differ by at most 1.5e-14 of each one's largest value over the bag
+(1.6e-13 on the UR5's bench stream, whose heavier links give larger momenta, the rounding of which τ̂ differentiates).
 RELATIVE leaves a factor ~70 for another machine's libm and BLAS, and is still ~1e-11 N·m on a 10 N·m torque, far
 below any physical meaning. The pinocchio passes are the same calls in both paths, so J and R are equal bit for bit.
 """
@@ -42,6 +42,8 @@ from kvark_ros.core.estimation.stiction import StictionBand
 from kvark_ros.core.learning.training import training_data
 from kvark_ros.io.alignment import read_inputs
 
+from reference_filter import ReferenceMomentumFilter, reference_estimator
+
 ROOT = Path(__file__).resolve().parents[2]
 BAGS = ("panda_contact", "panda_collision")
 RELATIVE = 1e-12          # of each quantity's largest magnitude over the run (module docstring)
@@ -66,8 +68,7 @@ effects:
 
 @pytest.fixture(scope="module")
 def config():
-    base = replace(load_config(ROOT / "config" / "panda.yaml"), model_dir=str(ROOT / "models" / "panda"))
-    return replace(base, filter=replace(base.filter, kernel="numpy"))
+    return replace(load_config(ROOT / "config" / "panda.yaml"), model_dir=str(ROOT / "models" / "panda"))
 
 
 @pytest.fixture(scope="module")
@@ -78,10 +79,6 @@ def trained(config):
 @pytest.fixture(scope="module")
 def inputs(config):
     return {bag: read_inputs(ROOT / "bags" / bag, config)[1] for bag in BAGS}
-
-
-def numba_of(config):
-    return replace(config, filter=replace(config.filter, kernel="numba"))
 
 
 def _run(estimator: Estimator, inputs, start: int = 0, stop: int | None = None) -> list:
@@ -123,8 +120,8 @@ def _assert_states_close(reference: dict, kernel: dict, relative: float = RELATI
 
 
 def _pair(config, trained, observer: str = "kvark") -> tuple[Estimator, Estimator]:
-    reference = Estimator.from_config(config, trained, observer)
-    kernel = Estimator.from_config(numba_of(config), trained, observer)
+    reference = reference_estimator(config, trained, observer)
+    kernel = Estimator.from_config(config, trained, observer)
     assert reference.compiled is False and kernel.compiled is True
     return reference, kernel
 
@@ -134,7 +131,7 @@ def test_kernel_matches_the_numpy_reference_on_the_bags(config, trained, inputs,
     """Default kvark (window VB, onset detector, KMP inside the kernel): every estimate, the onset alarms, the last
     contact statistic and collision excess, and the final filter state."""
     reference, kernel = _pair(config, trained)
-    assert type(reference.observer) is KVARKMomentumFilter and type(kernel.observer) is KVARKKernelFilter
+    assert type(reference.observer) is ReferenceMomentumFilter and type(kernel.observer) is KVARKKernelFilter
     _assert_equal_to_rounding(_run(reference, inputs[bag]), _run(kernel, inputs[bag]))
     assert kernel.observer.onset.alarms == reference.observer.onset.alarms > 0
     assert kernel.counts == reference.counts
@@ -185,9 +182,9 @@ def test_the_model_kernels_equal_their_references(posed, inputs):
 
 
 def test_pose_inputs_and_the_augmentation_are_compiled(config, posed, inputs):
-    """A KMP with second inputs and a model augmentation run compiled (``core.estimation.model_kernels``): the same estimates
-    as the reference on the collision bag, and the same final state to 1e-10 of each array's largest entry: the
-    two-input variances differ by ~2e-12 relative (the test above), which the onset detector's running sums carry
+    """A KMP with second inputs and a model augmentation run compiled (``core.estimation.model_kernels``): the same
+    estimates as the reference on the collision bag, and the same final state to 1e-10 of each array's largest entry:
+    the two-input variances differ by ~2e-12 relative (the test above), which the onset detector's running sums carry
     to 4e-12 of their size (measured), beyond RELATIVE's 1e-12 but 25 × inside this bound."""
     reference, kernel = _pair(config, posed)
     assert kernel.observer._pose is not None and kernel._compiled._aug_arguments is not None
@@ -244,9 +241,9 @@ def test_runtime_keys_reach_the_kernel(config, trained, inputs):
 
 @pytest.mark.parametrize("frame", ["base", "end_effector"])
 def test_weak_directions_and_the_damping_bias(config, trained, frame):
-    """At the stretched Panda (q = 0: σ₆ = 0, test/ros/test_wrench_near_singular_poses.py) J Jᵀ − δ² I is not positive definite: the kernel's
-    weak_wrench gives the reference's weak direction (to its sign, which an SVD leaves open), F and Σ_F with the
-    damping bias, in either axes."""
+    """At the stretched Panda (q = 0: σ₆ = 0, test/ros/test_wrench_near_singular_poses.py) J Jᵀ − δ² I is not positive
+    definite: the kernel's weak_wrench gives the reference's weak direction (to its sign, which an SVD leaves open), F
+    and Σ_F with the damping bias, in either axes."""
     q = np.zeros(7)
     tau_m = RobotModel.from_config(config).gravity(q) + 0.5
     reference, kernel = _pair(replace(config, wrench=replace(config.wrench, frame=frame)), trained)
@@ -276,7 +273,7 @@ def test_rejections_and_restarts(config, trained):
 
 def test_state_transfer_continues_bit_for_bit(config, trained, inputs):
     """continue_from between two kernel estimators, inside the collision's onset alarms, changes no output."""
-    data, config = inputs["panda_collision"], numba_of(config)
+    data = inputs["panda_collision"]
     whole = _run(Estimator.from_config(config, trained, "kvark"), data)
     old = Estimator.from_config(config, trained, "kvark")
     _run(old, data, 0, SPLIT)
@@ -293,7 +290,7 @@ def test_state_transfer_continues_bit_for_bit(config, trained, inputs):
 def test_estimates_are_snapshots(config, trained, inputs):
     """Every estimate holds its own arrays: later steps neither change them nor share their memory."""
     data = inputs["panda_contact"]
-    kernel = Estimator.from_config(numba_of(config), trained, "kvark")
+    kernel = Estimator.from_config(config, trained, "kvark")
     estimates = [e for e in _run(kernel, data, 0, 20) if e is not None]
     copies = [{field: getattr(e, field).copy() for field in FIELDS} for e in estimates]
     _run(kernel, data, 20, 40)
@@ -304,18 +301,27 @@ def test_estimates_are_snapshots(config, trained, inputs):
 
 
 def test_the_difference_form_runs_the_numpy_filter(config, trained):
-    """The difference form has no kernel: with filter.kernel numba it is the numpy KVARKFilter, stepped by the
-    numpy estimator."""
-    settings = replace(config.filter, kernel="numba", measurement="difference", vb_variant="paper")
+    """The difference form has no kernel: it is the numpy KVARKFilter, stepped by the numpy estimator."""
+    settings = replace(config.filter, measurement="difference", vb_variant="paper")
     assert type(make_observer("kvark", trained, settings)) is KVARKFilter
     estimator = Estimator.from_config(replace(config, filter=settings), trained, "kvark")
     assert estimator.compiled is False
 
 
+@pytest.mark.parametrize("name", ["kvark", "kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "gmr_gp"])
+def test_the_momentum_form_is_only_ever_the_compiled_filter(config, trained, name):
+    """make_observer builds every momentum-form K-VARK filter compiled; the base class, which holds the settings
+    and state but has no step, cannot be built at all."""
+    observer = make_observer(name, trained, config.filter)
+    assert type(observer) is KVARKKernelFilter
+    with pytest.raises(TypeError, match="abstract"):
+        KVARKMomentumFilter("kvark", observer.residual, observer.tuning, observer.noise, config.filter)
+
+
 @pytest.mark.parametrize("model", ["trained", "posed"])
 def test_nothing_compiles_after_construction(config, inputs, model, request):
     """The kernels compile (or load from the cache) when the estimator is built, never while it steps."""
-    kernel = Estimator.from_config(numba_of(config), request.getfixturevalue(model), "kvark")
+    kernel = Estimator.from_config(config, request.getfixturevalue(model), "kvark")
     dispatchers = [value for module in (step_kernel, model_kernels) for value in vars(module).values()
                    if isinstance(value, numba.core.dispatcher.Dispatcher)]
     before = {dispatcher: len(dispatcher.signatures) for dispatcher in dispatchers}

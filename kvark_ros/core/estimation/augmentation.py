@@ -15,7 +15,8 @@ applies each effect where it physically acts:
   ``M q̈ + C q̇ + g + τ_aug = τ_m + τ_ext``.
 
 ``joint_columns`` is the single definition of the torque effects' regressors: the diagnosis fits
-θ with it and the estimator evaluates ``τ_aug`` with it.
+θ with it and the estimator evaluates ``τ_aug`` with it. Which effects exist, their kinds, parameter counts and
+required settings are those of ``core.effect_catalog``.
 """
 from __future__ import annotations
 
@@ -28,16 +29,11 @@ from typing import Mapping, Sequence
 import numpy as np
 import yaml
 
+from kvark_ros.core.effect_catalog import (BODY_PARAMETERS, EFFECTS_BY_NAME, PARAMETERS_PER_JOINT,
+                                           REQUIRED_VARIANT, STRUCTURAL_EFFECTS, TANH_EPSILON, TORQUE_EFFECTS)
 from kvark_ros.core.files import SAFE_LOADER
 
-TANH_EPSILON = 0.02   # rad/s, default width of the smoothed sign(q̇) of dry friction
-TORQUE_EFFECTS = ("coulomb_friction", "viscous_friction", "stribeck_friction", "drive_gain", "torque_offset",
-                  "position_ripple")
-STRUCTURAL_EFFECTS = ("payload", "link_inertia", "armature", "joint_offset")
-PARAMETERS_PER_JOINT = {"coulomb_friction": 1, "viscous_friction": 1, "stribeck_friction": 1, "drive_gain": 1,
-                        "torque_offset": 1, "position_ripple": 2, "armature": 1, "joint_offset": 1}
-REQUIRED_VARIANT = {"stribeck_friction": ("stribeck_velocity",), "position_ripple": ("cycles_per_rev",)}
-PAYLOAD_SIZE = 10
+PAYLOAD_SIZE = len(BODY_PARAMETERS)
 
 
 class AugmentationError(ValueError):
@@ -86,7 +82,7 @@ class TorqueTerm:
     name: str                           # the effect, one of TORQUE_EFFECTS
     joint: int                          # joint index
     epsilon: float                      # tanh width ε of the smoothed sign(q̇), rad/s (TANH_EPSILON by default)
-    second: float                       # the variant's v_s rad/s (Stribeck) or k (ripple: cycles_per_rev), else 0.0
+    second: float                       # the effect's required setting (v_s rad/s of Stribeck, k of the ripple), or 0.0
     theta: tuple[float, float]          # θ: (θ₁, θ₂) of the ripple, (θ, 0.0) of the others
 
 
@@ -128,7 +124,8 @@ class Augmentation:
         for effect in self.torque_effects:
             variant = effect.variant
             epsilon = variant.get("epsilon", TANH_EPSILON)
-            second = variant.get("stribeck_velocity", variant.get("cycles_per_rev", 0.0))
+            required = EFFECTS_BY_NAME[effect.name].required     # the effect's one non-linear setting, if any
+            second = variant[required[0]] if required else 0.0
             for joint, theta in zip(effect.joints, effect.theta):
                 padded = (float(theta[0]), float(theta[1]) if theta.shape[0] > 1 else 0.0)
                 terms.append(TorqueTerm(effect.name, int(joint), epsilon, second, padded))

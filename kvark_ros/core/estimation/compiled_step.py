@@ -1,22 +1,25 @@
-"""The compiled ``Estimator.step`` of one estimator (``filter.kernel: numba``): its buffers and the kernel calls.
+"""The compiled ``Estimator.step`` of one estimator (momentum-form K-VARK): its buffers and the kernel calls.
 
 ``Estimator`` builds a ``CompiledStep`` when its observer is a ``KVARKKernelFilter`` and hands it every accepted
 sample after the first: the pinocchio passes run from Python (``RobotModel.compute_terms``), the rest in one call
 of ``step_kernel.estimate_step`` on buffers allocated here once (and ``weak_wrench`` at a pose with a direction the
 joints cannot sense); only the sample's outputs (τ̂, Cov τ̂, F, Σ_F, R, the weak directions) are new arrays, because
 an ``Estimate`` is a snapshot its consumers keep (replay, the tests) or publish later (the node's ``/diagnostics``).
-The numpy code in ``Estimator`` is the reference (docs/method.md; ``test/core/test_compiled_step_matches_reference.py``).
+The numpy code in ``Estimator`` is the reference (docs/method.md;
+``test/core/test_compiled_step_matches_reference.py``).
 """
 from __future__ import annotations
 
 import numpy as np
 
+from kvark_ros.core.effect_catalog import TORQUE_EFFECTS
 from kvark_ros.core.estimation.augmentation import Augmentation
 from kvark_ros.core.config import EstimatorConfig
 from kvark_ros.core.estimation.model_kernels import augmentation_torque
 from kvark_ros.core.estimation.observers.kvark_kernel import KVARKKernelFilter
 from kvark_ros.core.estimation.robot_model import RobotModel
-from kvark_ros.core.estimation.kernel_layouts import ESTIMATOR_PARAMS, ROWS, Effect, EstimatorParam, Flag, Outcome, Row, pack
+from kvark_ros.core.estimation.kernel_layouts import (ESTIMATOR_PARAMS, ROWS, Effect, EstimatorParam, Flag, Outcome,
+                                                      Row, pack)
 from kvark_ros.core.estimation.step_kernel import estimate_step, finite_sample, weak_wrench
 from kvark_ros.core.estimation.tare import Tare
 
@@ -25,6 +28,8 @@ from kvark_ros.core.estimation.tare import Tare
 _MOMENTUM_FILTER, _POST, _TARED, _END_EFFECTOR = (int(bits) for bits in (
     Flag.MOMENTUM | Flag.FILTER, Flag.POST, Flag.TARED, Flag.END_EFFECTOR))
 _WEAK, _DIVERGED, _SINGULAR = (int(bit) for bit in (Outcome.WEAK, Outcome.DIVERGED, Outcome.SINGULAR))
+# ``augmentation_torque``'s code of every torque effect of the catalog: the ``Effect`` member of its name in upper case
+EFFECT_CODES = {name: int(Effect[name.upper()]) for name in TORQUE_EFFECTS}
 
 
 class CompiledStep:
@@ -144,7 +149,7 @@ def augmentation_entries(augmentation: Augmentation) -> tuple[np.ndarray, ...]:
     """``augmentation_torque``'s arguments for ``augmentation.torque_terms()``, one entry per effect and joint in the
     order ``Augmentation.joint_torque`` adds them: codes (``Effect``), joints, params [ε, v_s or k], θ (m, 2)."""
     terms = augmentation.torque_terms()
-    return (np.array([Effect[term.name.upper()] for term in terms], dtype=np.int64),
+    return (np.array([EFFECT_CODES[term.name] for term in terms], dtype=np.int64),
             np.array([term.joint for term in terms], dtype=np.int64),
             np.array([(term.epsilon, term.second) for term in terms], dtype=float),
             np.array([term.theta for term in terms], dtype=float))

@@ -12,8 +12,8 @@ The layouts of ``core.estimation.model_kernels`` (``Pose``, ``Effect``) are here
 
 numba freezes these numbers into the kernels' machine code, and its on-disk cache is keyed on each kernel's own
 file alone: ``LAYOUTS_DIGEST`` in ``step_kernel.py`` and ``model_kernels.py`` pins this file's sha256, so changing a
-layout means updating the digest there, which recompiles the kernels (``test/core/test_compiled_step_matches_reference.py`` fails until it is
-done).
+layout means updating the digest there, which recompiles the kernels
+(``test/core/test_compiled_step_matches_reference.py`` fails until it is done).
 """
 from __future__ import annotations
 
@@ -195,8 +195,9 @@ class Pose(Layout):
 
 
 class Effect(Layout):
-    """Codes of ``augmentation_torque``'s entries: one per torque effect, named as in
-    ``core.estimation.augmentation.TORQUE_EFFECTS`` (``core.estimation.compiled_step.augmentation_entries`` maps them by name)."""
+    """Codes of ``augmentation_torque``'s entries: one per torque effect of ``core.effect_catalog``, its name in upper
+    case, in the catalog's order (``core.estimation.compiled_step.EFFECT_CODES`` maps them by name;
+    ``test/core/test_effect_catalog.py`` checks that every torque effect has one)."""
 
     COULOMB_FRICTION = enum.auto()      # tanh(q̇/ε) θ
     VISCOUS_FRICTION = enum.auto()      # q̇ θ

@@ -1,12 +1,12 @@
-"""Compiled evaluations of the trained model that ``core.estimation.compiled_step`` calls from Python once per sample, beside
-``step_kernel.estimate_step``: the KMP with a second input (``kmp_predict_pose``) and the augmentation's joint torque
-τ_aug (``augmentation_torque``). Each equals its numpy reference (``KMPResidualModel.predict``,
-``Augmentation.joint_torque``) to rounding (``test/core/test_compiled_step_matches_reference.py``); they cost 3-15 µs where the references cost
-30-90 µs per sample.
+"""Compiled evaluations of the trained model that ``core.estimation.compiled_step`` calls from Python once per sample,
+beside ``step_kernel.estimate_step``: the KMP with a second input (``kmp_predict_pose``) and the augmentation's joint
+torque τ_aug (``augmentation_torque``). Each equals its numpy reference (``KMPResidualModel.predict``,
+``Augmentation.joint_torque``) to rounding (``test/core/test_compiled_step_matches_reference.py``); they cost 3-15 µs
+where the references cost 30-90 µs per sample.
 
 Like ``step_kernel`` (whose docstring says why) every number comes from the arguments, from this file's own constants
-or from the layouts of ``core.estimation.kernel_layouts`` (``Pose``, ``Effect``), whose content ``LAYOUTS_DIGEST`` pins here:
-numba's on-disk cache is keyed on this file alone. No kernel of ``step_kernel`` calls these.
+or from the layouts of ``core.estimation.kernel_layouts`` (``Pose``, ``Effect``), whose content ``LAYOUTS_DIGEST`` pins
+here: numba's on-disk cache is keyed on this file alone. No kernel of ``step_kernel`` calls these.
 """
 from __future__ import annotations
 
@@ -15,8 +15,9 @@ import numpy as np
 from kvark_ros.core.estimation.kernel_layouts import Effect, Pose
 from kvark_ros.core.estimation.step_kernel import jit
 
-# sha256 of core/estimation/kernel_layouts.py (its docstring): update it with the file, so numba recompiles these kernels.
-LAYOUTS_DIGEST = "9c11d37fe60c424c95705fd15f2aa8b41c4df414a344d2268a914fb425b603f8"
+# sha256 of core/estimation/kernel_layouts.py (its docstring): update it with the file,
+# so numba recompiles these kernels.
+LAYOUTS_DIGEST = "704d18ff06b0686c48c3b3ffe19c00be3041342bbfd5d5ed690a92149aa6f377"
 
 
 @jit

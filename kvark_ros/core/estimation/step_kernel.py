@@ -1,12 +1,13 @@
-"""The compiled kernels of ``filter.kernel: numba`` (issue 16): the K-VARK filter step and ``Estimator.step``.
+"""The compiled kernels (issue 16): the momentum-form K-VARK filter step and ``Estimator.step``.
 
 Why. One ``Estimator.step`` of the default filter cost ~1.04 M instructions, most of them numpy's per-call overhead
-on 6- and 7-element arrays. ``kvark_step`` runs the per-sample arithmetic of ``KVARKMomentumFilter.step``
+on 6- and 7-element arrays. ``kvark_step`` runs the per-sample arithmetic of the K-VARK momentum filter
 (docs/method.md §4.2-4.7) and ``estimate_step`` everything else of a step but the pinocchio passes (which stay
 Python calls, ``RobotModel.compute_terms``), each as one ``numba.njit`` call on preallocated buffers. The numpy
-code (``KVARKMomentumFilter``, ``Estimator``) stays the readable reference: the same equations, and the tests pin
-the kernels to it on the committed bags (``test/core/test_compiled_step_matches_reference.py``). ``observers.kvark_kernel`` (the filter) and
-``core.estimation.compiled_step`` (the estimator) hold the buffers and make the calls.
+references (test/core/reference_filter.py, ``Estimator``) are readable: the same equations, and the tests pin
+the kernels to them on the committed bags (``test/core/test_compiled_step_matches_reference.py``).
+``observers.kvark_kernel`` (the filter) and ``core.estimation.compiled_step`` (the estimator) hold the buffers and make
+the calls.
 
 ``estimate_step`` computes, in the reference's order:
 - p = rnea(q, 0, q̇) − g = M q̇ (eq. 5) and u = Cᵀ q̇ − g + τ_m (− τ_aug) (eq. 7) from pinocchio's outputs (§2.1);
@@ -31,12 +32,13 @@ the constants come packed (``split_state``, ``split_constants``). And numba's ca
 next to this file, or ``NUMBA_CACHE_DIR``) is keyed on this file's content only: a function inlined from another
 module, or another module's constant frozen into the machine code, would stay stale in the cache when only that
 module changed. So all compiled code lives in this file and takes every number from its arguments, from this
-file's own constants or from the layouts this file pins (below; ``test/core/test_compiled_step_matches_reference.py`` checks both). Arrays other
-than C-contiguous float64 ones (a strided view, float32) compile one more specialization, once.
+file's own constants or from the layouts this file pins (below; ``test/core/test_compiled_step_matches_reference.py``
+checks both). Arrays other than C-contiguous float64 ones (a strided view, float32) compile one more
+specialization, once.
 
-Layouts. The packed arrays' entries are declared once, in ``core.estimation.kernel_layouts`` (``Const``, ``Param``, ``Option``,
-``Vec``, ``Counter``, ``Row``, ``EstimatorParam``; bits ``Flag``, ``Outcome``); numba compiles a member as its
-integer constant, so ``vec[Vec.TAU]`` costs what ``vec[1]`` does. That file's content is pinned here by
+Layouts. The packed arrays' entries are declared once, in ``core.estimation.kernel_layouts`` (``Const``, ``Param``,
+``Option``, ``Vec``, ``Counter``, ``Row``, ``EstimatorParam``; bits ``Flag``, ``Outcome``); numba compiles a member as
+its integer constant, so ``vec[Vec.TAU]`` costs what ``vec[1]`` does. That file's content is pinned here by
 ``LAYOUTS_DIGEST``: numba's cache sees only this file, so a change there must change the digest here (the tests
 check it), which recompiles the kernels.
 """
@@ -48,11 +50,12 @@ from typing import Callable
 import numba
 import numpy as np
 
-from kvark_ros.core.estimation.kernel_layouts import (CONST_ROWS, PARAMS, VEC_ROWS, Const, Counter, EstimatorParam, Flag, Option,
-                                          Outcome, Param, Row, Vec)
+from kvark_ros.core.estimation.kernel_layouts import (CONST_ROWS, PARAMS, VEC_ROWS, Const, Counter, EstimatorParam,
+                                                      Flag, Option, Outcome, Param, Row, Vec)
 
-# sha256 of core/estimation/kernel_layouts.py (module docstring): update it with the file, so numba recompiles the kernels.
-LAYOUTS_DIGEST = "9c11d37fe60c424c95705fd15f2aa8b41c4df414a344d2268a914fb425b603f8"
+# sha256 of core/estimation/kernel_layouts.py (module docstring): update it with the file,
+# so numba recompiles the kernels.
+LAYOUTS_DIGEST = "704d18ff06b0686c48c3b3ffe19c00be3041342bbfd5d5ed690a92149aa6f377"
 
 
 def jit(function: Callable) -> Callable:
@@ -131,7 +134,7 @@ def kmp_predict(qd: np.ndarray, support: np.ndarray, weights_t: np.ndarray, cons
 @jit
 def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, state: np.ndarray, ints: np.ndarray,
                constants: np.ndarray, options: np.ndarray) -> None:
-    """One sample of ``KVARKMomentumFilter.step``; updates the packed state in place.
+    """One sample of the K-VARK momentum filter (``KVARKKernelFilter.step``); updates the packed state in place.
 
     Inputs: ``dt`` s; ``qd`` (n,) rad/s; ``p``, ``u_prev`` (n,) N·m·s, N·m. ``state``, ``ints``: the packed state
     (``split_state``: p̂, τ̂, P = [[a, b], [b, c]], R_k, the NIS mean, Σ_d, the window's q̂, Υ and snapshots, the

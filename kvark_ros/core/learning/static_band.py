@@ -11,6 +11,8 @@ from typing import Any
 
 import numpy as np
 
+from kvark_ros.core.effect_catalog import FRICTION_EFFECTS
+
 # rad/s: the slow sliding the band is read from: |q̇| in [SLOW[0], SLOW[1]], the upper end doubled up to 3
 # times (0.32 rad/s) where a joint has fewer than MIN_SAMPLES each way. The upper end stays below the
 # Stribeck velocities of arm joints (0.04-0.1 rad/s), over which friction falls to its sliding level: a
@@ -18,7 +20,6 @@ import numpy as np
 # §4.11).
 SLOW = (0.01, 0.04)
 MIN_SAMPLES = 20
-FRICTION_EFFECTS = ("coulomb_friction", "stribeck_friction", "viscous_friction")
 
 
 def friction_torque(tau_r: np.ndarray, augmentation: Any, q: np.ndarray, qd: np.ndarray,

@@ -77,7 +77,7 @@ test: $(STAMP)
 ## settings (kvark_ros/core/settings.py), the key comments of config/*.yaml (values, notes and prose kept) and
 ## README's table of keys
 generated: $(STAMP)
-	$(BIN)/python -m kvark_ros.core.config_schema --write-settings --write-configs --write-readme README.md
+	$(BIN)/python -m kvark_ros.core.config_sources --write-settings --write-configs --write-readme README.md
 
 ## versions: the interpreter and the installed versions the figures depend on
 versions: $(STAMP)

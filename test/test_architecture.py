@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from kvark_ros.core.config_schema import (KEYS, REGENERATE, SETTINGS_PATH, keys_table, regenerated_config_text,
-                                          settings_source)
+from kvark_ros.core.config_schema import KEYS, keys_table
+from kvark_ros.core.config_sources import REGENERATE, SETTINGS_PATH, regenerated_config_text, settings_source
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "kvark_ros"

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import pinocchio as pin
 
 from kvark_ros.core.config import EXAMPLE_ROBOT_DATA_PREFIX, ConfigError, load_config
-from kvark_ros.core.config_schema import ConfigDocument, comment_lines, config_text
+from kvark_ros.core.config_sources import ConfigDocument, comment_lines, config_text
 from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.estimation.robot_model import RobotModel, resolve_urdf
 from kvark_ros.tools.xacro_files import expand_xacro, parse_assignments
@@ -207,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
               "`kvark train` and `kvark replay`. Units are SI (rad, rad/s, N·m, N, s). Nested groups become dotted",
               "ROS parameter names, e.g. filter.ewma_time. Each key's first comment lines are its row of the key",
               "table (kvark_ros/core/config_schema.py; `kvark config --keys` prints them all);",
-              "`python -m kvark_ros.core.config_schema --write-configs FILE` rewrites them, keeping the values",
+              "`python -m kvark_ros.core.config_sources --write-configs FILE` rewrites them, keeping the values",
               "and the notes after a lone '#'.",
               "Relative paths (robot_model.urdf, residual_model.model_dir, model_augmentation) are relative to",
               "this file's folder."]

@@ -9,8 +9,9 @@ import pytest
 import yaml
 
 from kvark_ros.core.config import ConfigError, EstimatorConfig, FilterSettings, load_config
-from kvark_ros.core.config_schema import (KEYS, KEYS_BY_NAME, comment_lines, describe, keys_table, parse_config_text,
-                                          readme_with_keys_table, regenerated_config_text)
+from kvark_ros.core.config_schema import KEYS, KEYS_BY_NAME, keys_table
+from kvark_ros.core.config_sources import (comment_lines, describe, parse_config_text, readme_with_keys_table,
+                                           regenerated_config_text)
 from kvark_ros.core.settings import SETTINGS_BY_GROUP
 
 ROOT = Path(__file__).resolve().parents[2]

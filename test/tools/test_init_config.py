@@ -9,7 +9,8 @@ import yaml
 
 from kvark_ros.cli import main
 from kvark_ros.core.config import NODE_NAME, flatten_parameters, load_config
-from kvark_ros.core.config_schema import KEYS, KEYS_BY_NAME, regenerated_config_text
+from kvark_ros.core.config_schema import KEYS, KEYS_BY_NAME
+from kvark_ros.core.config_sources import regenerated_config_text
 from kvark_ros.core.estimation.robot_model import RobotModel
 
 ROOT = Path(__file__).resolve().parents[2]

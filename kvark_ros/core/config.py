@@ -20,6 +20,7 @@ from typing import Any, Mapping
 from kvark_ros.core.config_schema import (KEYS, KEYS_BY_NAME, MEASUREMENTS, NODE_NAME, OBSERVER_NAMES, REMOVED_KEYS,
                                           RENAMED_KEYS, VB_VARIANTS, WRENCH_FRAMES, Key, vb_variant_problem)
 from kvark_ros.core.files import read_yaml
+from kvark_ros.core.hints import did_you_mean, nearest
 from kvark_ros.core.estimation.payload import Payload
 from kvark_ros.core.settings import (SETTINGS_BY_GROUP, ContactSettings, DiagnosticsSettings, EstimatorConfig,
                                      FilterSettings, InputSettings, OutputSettings, TareSettings, WrenchSettings)
@@ -63,8 +64,21 @@ def _value(key: Key, parameters: Mapping[str, Any], source: str) -> Any:
         if isinstance(value, int) and not isinstance(value, bool) and key.kind == "number":
             value = float(value)
         if not key.check(value):
-            raise ConfigError(f"{source}: key '{key.name}' has invalid value {value!r}; allowed: {key.allowed}")
+            hint = did_you_mean(value, key.choices) if key.kind == "choice" and isinstance(value, str) else ""
+            raise ConfigError(f"{source}: key '{key.name}' has invalid value {value!r}; allowed: {key.allowed}{hint}")
     return tuple(value) if isinstance(value, list) else value
+
+
+def _nearest_key(name: str) -> str:
+    """The fix for an unknown key: the key of the same last part (``ee_frame`` is ``robot_model.ee_frame``), else
+    the nearest by dotted name, else by last part, else where to find every key."""
+    leaves = {key.name.rpartition(".")[2]: key.name for key in KEYS}
+    leaf = name.rpartition(".")[2]
+    found = leaves.get(leaf) or nearest(name, KEYS_BY_NAME)
+    if found is None:
+        leaf = nearest(leaf, leaves)
+        found = None if leaf is None else leaves[leaf]
+    return "`kvark config --keys` lists every key" if found is None else f"did you mean '{found}'?"
 
 
 def config_from_parameters(parameters: Mapping[str, Any], source: str = "configuration") -> EstimatorConfig:
@@ -79,7 +93,7 @@ def config_from_parameters(parameters: Mapping[str, Any], source: str = "configu
     if removed:
         raise ConfigError(f"{source}: key '{removed[0]}' was removed: {REMOVED_KEYS[removed[0]]}")
     if unknown:
-        raise ConfigError(f"{source}: unknown key '{unknown[0]}'; allowed keys: {', '.join(KEYS_BY_NAME)}")
+        raise ConfigError(f"{source}: unknown key '{unknown[0]}'; {_nearest_key(unknown[0])}")
     values = {key.name: _value(key, parameters, source) for key in KEYS}
     problem = vb_variant_problem(values["filter.vb_variant"], values["filter.measurement"])
     if problem is not None:

@@ -8,7 +8,7 @@ from typing import Any
 from kvark_ros.io.common import PathLike
 from kvark_ros.io.reader import open_reader, resolve_bag
 
-__all__ = ["bag_info"]
+__all__ = ["bag_info", "topic_types"]
 
 
 def bag_info(path: PathLike) -> dict[str, Any]:
@@ -40,3 +40,8 @@ def bag_info(path: PathLike) -> dict[str, Any]:
             "message_count": count,
             "topics": dict(sorted(topic_info.items())),
         }
+
+
+def topic_types(path: PathLike) -> dict[str, set[str]]:
+    """topic → the message types recorded on it (``bag_info``'s topics)."""
+    return {topic: set(entry["type"].split("|")) for topic, entry in bag_info(path)["topics"].items()}

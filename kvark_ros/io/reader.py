@@ -45,6 +45,7 @@ from kvark_ros.io.runs import (
     WrenchSeries,
     bag_error,
 )
+from kvark_ros.io.topic_hints import missing_topic
 
 __all__ = ["read_run"]
 
@@ -124,14 +125,6 @@ def _topic_types(reader: Reader) -> dict[str, set[str]]:
     for conn in reader.connections:
         out.setdefault(conn.topic, set()).add(conn.msgtype)
     return out
-
-
-def _describe_topics(types: dict[str, set[str]]) -> str:
-    if not types:
-        return "the bag has no topics"
-    return "the bag has " + ", ".join(
-        f"{t} [{'|'.join(sorted(v))}]" for t, v in sorted(types.items())
-    )
 
 
 class _Columns:
@@ -498,11 +491,8 @@ def read_run(
         custom = getattr(getattr(getattr(reader, "storage", None), "metadata", None), "custom", None) or {}
         source = str(custom.get(SOURCE_KEY, ""))
         if topics.joint_states not in types:
-            raise bag_error(
-                given,
-                f"topic {topics.joint_states} is absent ({_describe_topics(types)})",
-                "record the joint states on /joint_states (remap the topic when recording)",
-            )
+            raise missing_topic(given, f"topic {topics.joint_states} (input.joint_states_topic) is absent",
+                                topics.joint_states, "input.joint_states_topic", types, {JOINT_STATE})
         _check_type(given, topics.joint_states, types[topics.joint_states], {JOINT_STATE})
         optional = {
             topics.effort_commands: {FLOAT64_ARRAY, JOINT_STATE},

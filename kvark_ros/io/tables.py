@@ -1,10 +1,12 @@
 """Numeric tables from robot logs (CSV or whitespace text, NPZ, MAT), read without ROS.
 
 A table is named numeric columns. A CSV or text log has one header row naming its columns (lines
-before it that start with ``#`` are comments); the delimiter is a comma when the header has one,
-else whitespace, and an empty CSV cell reads as NaN. NPZ and MAT files hold arrays by name: a vector
-is the column ``name``, a 2-D array a block whose column k is ``name:k``. Samples run along a 2-D
-array's longer axis, so MATLAB's (1, T) vectors and (k, T) matrices read like (T,) and (T, k) ones.
+before it that start with ``#`` are comments); the delimiter is a semicolon when the header has more
+of them than commas (a spreadsheet's export where the decimal separator is a comma), else a comma
+when the header has one, else whitespace; an empty CSV cell reads as NaN, a decimal comma is an error.
+NPZ and MAT files hold arrays by name: a vector is the column ``name``, a 2-D array a block whose column
+k is ``name:k``. Samples run along a 2-D array's longer axis, so MATLAB's (1, T) vectors and (k, T)
+matrices read like (T,) and (T, k) ones.
 Every failure a user can cause is one :class:`BagError` naming the file, the problem and the fix.
 """
 
@@ -17,8 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from kvark_ros.core.hints import did_you_mean, shorten
 from kvark_ros.io.common import FloatArray, PathLike
-from kvark_ros.io.runs import bag_error
+from kvark_ros.io.runs import BagError, bag_error
 
 __all__ = ["FORMATS", "Table", "read_table", "table_format"]
 
@@ -39,7 +42,7 @@ class Table:
     def describe(self) -> str:
         """The column names, shortened for an error message."""
         names = list(self.columns)
-        shown = ", ".join(names[:_SHOWN_NAMES])
+        shown = ", ".join(shorten(name) for name in names[:_SHOWN_NAMES])
         more = f" and {len(names) - _SHOWN_NAMES} more" if len(names) > _SHOWN_NAMES else ""
         return f"{shown}{more}" if names else "no numeric columns"
 
@@ -53,7 +56,8 @@ class Table:
                                 "map the columns of one recording")
             return found
         why = f" ({name} is {self.skipped[name]})" if name in self.skipped else ""
-        raise bag_error(self.path, f"has no column {name!r}{why}; its columns are {self.describe()}",
+        hint = did_you_mean(name, self.columns)
+        raise bag_error(self.path, f"has no column {name!r}{why}{hint}; its columns are {self.describe()}",
                         "fix the column names in the mapping (--mapping or the field flags)")
 
 
@@ -93,13 +97,14 @@ def _read_text(path: Path) -> Table:
     if not numbered:
         raise bag_error(path, "is empty (no header row)", "export the log with a header row naming the columns")
     header_line, header = numbered[0]
-    delimiter = "," if "," in header else None
+    delimiter = ";" if header.count(";") > header.count(",") else "," if "," in header else None
     names = [name.strip().strip('"').strip("'") for name in header.split(delimiter)]
     if not all(names):
         raise bag_error(path, f"line {header_line}: the header has an empty column name", "name every column")
     repeated = sorted({name for name in names if names.count(name) > 1})
     if repeated:
-        raise bag_error(path, f"line {header_line}: the header names {repeated[0]!r} twice", "name every column once")
+        raise bag_error(path, f"line {header_line}: the header names {shorten(repeated[0])!r} twice",
+                        "name every column once")
     body = numbered[1:]
     if not body:
         raise bag_error(path, "has a header but no data rows", "export the log with its data")
@@ -125,9 +130,19 @@ def _parse_cells(path: Path, body: list[tuple[int, str]], names: list[str], deli
             try:
                 data[row, k] = float(text) if text else np.nan
             except ValueError:
-                raise bag_error(path, f"line {line_no}, column {names[k]!r}: {text!r} is not a number",
-                                "fix the cell or drop the row") from None
+                raise _not_a_number(path, line_no, names[k], text) from None
     return data
+
+
+def _not_a_number(path: Path, line_no: int, name: str, text: str) -> BagError:
+    """The error of a cell that is not a number; a decimal comma (``1,5``) names the fix for the whole file."""
+    where = f"line {line_no}, column {shorten(name)!r}: {shorten(text)!r}"
+    try:
+        float(text.replace(",", ".", 1))
+    except ValueError:
+        return bag_error(path, f"{where} is not a number", "fix the cell or drop the row")
+    return bag_error(path, f"{where} has a decimal comma", "export the log with '.' as the decimal separator, or "
+                     f"replace the commas: sed -i 's/,/./g' {path}")
 
 
 def _load_npz(path: Path) -> dict[str, object]:

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from kvark_ros.core.config import ConfigError, load_config
-from kvark_ros.core.files import read_yaml
+from kvark_ros.core.files import check_output, read_yaml
 from kvark_ros.io import (BagError, CommandSeries, JointStateSeries, RecordedRun, TopicNames, WrenchSeries,
                           write_run)
 from kvark_ros.io.common import FloatArray
@@ -207,10 +207,10 @@ def add_parser(subparsers: SubParsers) -> None:
         epilog="A field SPEC is a pattern with {i}, the joint index (actual_q_{i}, q{i}; q:{i} is column i of an\n"
                "NPZ/MAT array q), or comma-separated column names in joint order (wrench: fx,fy,fz,tx,ty,tz).\n"
                "Flags override the --mapping file key by key (see examples/ur_rtde_mapping.yaml).")
-    parser.add_argument("input", help="the log: .csv/.txt/.log/.tsv/.dat (header row; comma or whitespace "
+    parser.add_argument("input", help="the log: .csv/.txt/.log/.tsv/.dat (header row; comma, semicolon or whitespace "
                                       "delimited), .npz or .mat")
     parser.add_argument("--out", required=True, metavar="BAG",
-                        help="bag directory to write (refused if it exists, see --force)")
+                        help="bag directory to write (new or empty; see --force)")
     parser.add_argument("--mapping", metavar="FILE", help="YAML column mapping (examples/*_mapping.yaml)")
     parser.add_argument("--format", choices=FORMATS, help="input format (default: from the file suffix)")
     parser.add_argument("--force", action="store_true", help="replace an existing --out (only once the new bag is "
@@ -250,8 +250,7 @@ def add_parser(subparsers: SubParsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
-    if (out.exists() or out.is_symlink()) and not args.force:
-        raise _fail(out, "output exists already", "pass --force to replace it, or choose another --out")
+    check_output(out, args.force)
     document = read_yaml(args.mapping, ConfigError, "mapping file", "pass an existing mapping YAML",
                          "pass a YAML mapping file") if args.mapping else {}
     if not isinstance(document, dict):
@@ -261,7 +260,7 @@ def run(args: argparse.Namespace) -> int:
     fmt = table_format(args.input, mapping.format)
     table = read_table(args.input, fmt)
     recorded, report = build_run(table, mapping, _joints(args, mapping))
-    write_run(out, recorded, storage=args.storage, topics=mapping.topics, overwrite=args.force)
+    write_run(out, recorded, storage=args.storage, topics=mapping.topics, force=args.force)
     kept = report.stamp.size
     print(f"kvark import: {args.input} ({fmt}, {report.rows} rows, {len(table.columns)} columns) -> {out} "
           f"({args.storage})")

@@ -250,7 +250,7 @@ def test_existing_output_is_refused_unless_force(tmp_path, capsys):
     bag.mkdir()
     (bag / "keep.txt").write_text("old")
     assert _import(log, *BASE, "--out", bag) == 1
-    assert "output exists already; pass --force" in capsys.readouterr().err
+    assert "exists and is not empty; pass --force" in capsys.readouterr().err
     assert (bag / "keep.txt").exists()
     assert _import(log, *BASE, "--out", bag, "--force") == 0
     assert not (bag / "keep.txt").exists() and len(read_run(bag).joint_states.stamp) == 2

@@ -121,8 +121,9 @@ def _replay(files, tmp_path: Path, *, config=CONFIG, model=None, bag=None, extra
 
 
 def _train(files, tmp_path: Path, out: Path, *, config=CONFIG, bags=None) -> list[str]:
+    """``kvark train`` into ``out``, with --force: a previous model there must survive the error."""
     return ["train", "--config", str(config), "--bags", *map(str, bags or [files.good]),
-            "--out", str(out), "--no-baselines", "--no-plots"]
+            "--out", str(out), "--no-baselines", "--no-plots", "--force"]
 
 
 def _edit_model_yaml(model: Path, edit) -> None:
@@ -276,7 +277,7 @@ CONFIG_CASES = {
     # name: (writer, problem words, fix word)
     "bad_yaml": (_bad_yaml, ("invalid YAML", "line"), "fix the syntax"),
     "unknown_key": (lambda d: _with_parameters(d, "unknown_key", lambda p: p.__setitem__("obsrever", "kf")),
-                    ("unknown key 'obsrever'",), "allowed keys"),
+                    ("unknown key 'obsrever'",), "did you mean 'observer'?"),
     "out_of_range": (lambda d: _with_parameters(d, "out_of_range",
                                                 lambda p: p["filter"].__setitem__("ewma_time", -2.0)),
                      ("filter.ewma_time", "-2.0"), "allowed"),

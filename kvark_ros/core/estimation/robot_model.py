@@ -28,6 +28,7 @@ from scipy.linalg.lapack import dpotrf
 
 from kvark_ros.core.estimation.augmentation import Augmentation
 from kvark_ros.core.config import EXAMPLE_ROBOT_DATA_PREFIX
+from kvark_ros.core.hints import did_you_mean, listing
 from kvark_ros.core.estimation.linalg import solve_spd
 from kvark_ros.core.estimation.payload import Payload, inertia_problem
 
@@ -170,23 +171,27 @@ class RobotModel:
             full = pin.buildModelFromXML(resolve_urdf(urdf))
         except RuntimeError as exc:
             raise RobotModelError(f"URDF could not be parsed: {exc}") from exc
+        self.urdf_name = "the URDF" if urdf.lstrip().startswith("<") else f"the URDF {urdf}"
         missing = [name for name in joint_names if not full.existJointName(name)]
         if missing:
-            raise RobotModelError(f"joints {missing} are not in the URDF; it has "
-                                  f"{[n for n in full.names[1:]]}")
+            raise RobotModelError(self._not_a_joint(full, missing[0]))
         locked = [jid for jid in range(1, full.njoints) if full.names[jid] not in joint_names]
         self.model = pin.buildReducedModel(full, locked, pin.neutral(full)) if locked else full
         order = [self.model.getJointId(name) for name in joint_names]
-        if any(self.model.joints[jid].nv != 1 for jid in order):
-            raise RobotModelError("only one-degree-of-freedom joints are supported")
+        several = [(name, self.model.joints[jid].nv) for name, jid in zip(joint_names, order)
+                   if self.model.joints[jid].nv != 1]
+        if several:
+            raise RobotModelError(f"robot_model.joint_names: {several[0][0]!r} of {self.urdf_name} has {several[0][1]} "
+                                  "degrees of freedom; only one-degree-of-freedom joints are supported")
         # Column of each requested joint in pinocchio's v ordering (pinocchio orders by tree).
         self._index = np.array([self.model.joints[jid].idx_v for jid in order])
         if not np.array_equal(self._index, np.arange(len(order))):
-            raise RobotModelError("joint_names must follow the kinematic chain order of the URDF: "
-                                  f"{[self.model.names[j] for j in range(1, self.model.njoints)]}")
+            raise RobotModelError(f"robot_model.joint_names must follow the kinematic chain order of {self.urdf_name}: "
+                                  f"{', '.join(self.model.names[j] for j in range(1, self.model.njoints))}")
         self.joint_names = tuple(joint_names)
-        self.ee_frame_id = self._frame_id(ee_frame)
-        self.flange_frame_id = self._frame_id(flange_frame or ee_frame)
+        self.ee_frame_id = self._frame_id(ee_frame, "robot_model.ee_frame")
+        self.flange_frame_id = self._frame_id(flange_frame or ee_frame,
+                                              "robot_model.flange_frame" if flange_frame else "robot_model.ee_frame")
         self.augmentation = augmentation
         self._q_offset: np.ndarray | None = None
         if augmentation is not None:
@@ -222,9 +227,23 @@ class RobotModel:
         """Number of estimated joints."""
         return self.model.nv
 
-    def _frame_id(self, name: str) -> int:
+    def _not_a_joint(self, full: pin.Model, name: str) -> str:
+        """The error of a ``robot_model.joint_names`` entry that is not a moving joint of the URDF ``full``."""
+        moving = list(full.names[1:])
+        fixed = full.existFrame(name) and full.frames[full.getFrameId(name)].type == pin.FrameType.FIXED_JOINT
+        problem = f"is a fixed joint of {self.urdf_name}, not a moving one" if fixed else \
+            f"is not a joint of {self.urdf_name}"
+        hint = did_you_mean(name, moving) or f"; its moving joints: {listing(moving)}"
+        return f"robot_model.joint_names: {name!r} {problem}{hint}"
+
+    def _frame_id(self, name: str, key: str = "the wrench's header.frame_id") -> int:
+        """The id of frame ``name``; an error naming ``key`` (the config key or message field that names the frame)
+        and the nearest frame if there is none."""
         if not self.model.existFrame(name):
-            raise RobotModelError(f"frame '{name}' is not in the URDF")
+            frames = [frame.name for frame in self.model.frames]
+            links = [frame.name for frame in self.model.frames if frame.type == pin.FrameType.BODY]
+            hint = did_you_mean(name, frames) or f"; its links: {listing(links)}"
+            raise RobotModelError(f"{key}: {name!r} is not a frame of {self.urdf_name}{hint}")
         return self.model.getFrameId(name)
 
     def _augment(self, augmentation: Augmentation) -> None:

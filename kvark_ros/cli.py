@@ -55,7 +55,7 @@ ROS_HINT = ("source a ROS 2 Jazzy environment, or install the ROS 2 wheels: pip 
 # The errors a user causes (a bad file, config, model, bag or plant), printed as one line: (defining module, class).
 # A class whose module is not loaded cannot have been raised, so checking for them imports nothing.
 USER_ERRORS = (("kvark_ros.core.estimation.augmentation", "AugmentationError"),
-               ("kvark_ros.core.config", "ConfigError"),
+               ("kvark_ros.core.config", "ConfigError"), ("kvark_ros.core.files", "OutputExistsError"),
                ("kvark_ros.core.estimation.observers.base", "ObserverError"),
                ("kvark_ros.core.estimation.residual.files", "ResidualModelError"),
                ("kvark_ros.core.estimation.robot_model", "RobotModelError"), ("kvark_ros.io.runs", "BagError"),

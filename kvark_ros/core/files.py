@@ -1,11 +1,14 @@
-"""Files: atomic writes (a reader sees the old file or the new one, never half of one) and YAML
-reads whose every failure is one user error naming the file, the problem and the fix."""
+"""Files: atomic writes (a reader sees the old file or the new one, never half of one), the one rule for a
+command's output (an existing non-empty output is replaced only with ``--force``, built beside it and swapped in
+whole) and YAML reads whose every failure is one user error naming the file, the problem and the fix."""
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import yaml
 
@@ -39,6 +42,76 @@ def write_atomically(path: Path, write: Callable[[Any], Any]) -> None:
 def write_text_atomically(path: Path, text: str) -> None:
     """``Path.write_text``, atomically (UTF-8)."""
     write_atomically(path, lambda f: f.write(text.encode()))
+
+
+class OutputExistsError(ValueError):
+    """A command's output exists and is not empty and ``--force`` was not given (a user error: one line)."""
+
+
+def _occupied(path: Path) -> bool:
+    """Whether ``path`` holds something an output would replace: a link, a non-empty file or directory."""
+    if path.is_symlink():
+        return True
+    if path.is_dir():
+        return any(path.iterdir())
+    return path.exists() and path.stat().st_size > 0
+
+
+def check_output(path: str | os.PathLike, force: bool) -> None:
+    """The output rule of every command that writes: ``path`` may be new or an empty directory (or file); anything
+    else is replaced only with ``force``. Called before the long work, so a refusal costs nothing."""
+    if not force and _occupied(Path(path)):
+        raise OutputExistsError(f"{os.fspath(path)}: exists and is not empty; pass --force to replace it or choose "
+                                "another --out")
+    here = Path.cwd()
+    if force and Path(path).resolve() in (here, *here.parents):
+        raise OutputExistsError(f"{os.fspath(path)}: holds the current directory, which --force would replace; "
+                                "choose another --out")
+
+
+def replace_path(built: Path, target: Path) -> None:
+    """Move ``built`` (a directory or file) onto ``target`` by renames; the previous ``target`` is set aside
+    first and removed only after, and put back on any failure."""
+    backup = target.with_name(f".{target.name}.previous")
+    _remove(backup)
+    had_target = target.exists() or target.is_symlink()
+    try:
+        if had_target:
+            os.replace(target, backup)
+        os.replace(built, target)
+    except BaseException:
+        if had_target and not (target.exists() or target.is_symlink()):
+            os.replace(backup, target)
+        raise
+    _remove(backup)
+
+
+def _remove(path: Path) -> None:
+    """Delete ``path`` whatever it is (a directory tree, a file, a link); nothing if it does not exist."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+@contextmanager
+def staged_directory(target: str | os.PathLike, force: bool) -> Iterator[Path]:
+    """A new empty directory beside ``target`` to build the output in; when the block succeeds it replaces
+    ``target`` whole (``replace_path``), so no file of an old output survives, and when the block fails it is
+    removed and ``target`` is untouched. ``check_output`` is applied before and again at the swap (an output that
+    appeared meanwhile)."""
+    target = Path(target)
+    check_output(target, force)
+    target.absolute().parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.absolute().parent))
+    try:
+        staging.chmod(umask_mode(0o777))          # it becomes the output: readable as mkdir makes it
+        yield staging
+        check_output(target, force)
+        replace_path(staging, target)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
 
 
 # libyaml's parser where PyYAML was built with it (its wheels are): the same documents as yaml.safe_load, about

@@ -45,6 +45,7 @@ from kvark_ros.core.config import ConfigError, EstimatorConfig, load_config
 from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.core.estimation.linalg import single_threaded_blas
 from kvark_ros.core.estimation.model_store import TrainedModel, save_model
+from kvark_ros.core.files import check_output, staged_directory
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.learning.training import SAVGOL_WINDOW, smoothed_signals, train_model
 from kvark_ros.core.estimation.robot_model import flange_link_parameters
@@ -71,7 +72,7 @@ from kvark_ros.gap.plausibility import (
     raw_gap,
     theta_split,
 )
-from kvark_ros.io.alignment import load_recordings
+from kvark_ros.io.alignment import add_sample_options, load_recordings
 
 if TYPE_CHECKING:
     from kvark_ros.cli import SubParsers
@@ -422,7 +423,8 @@ def train_on_diagnosis(config: EstimatorConfig, robot: RobotModel, segments: Seq
     Returns the trained model and a summary: the effects and the mean held-out gap before/after (N·m).
     """
     diagnosis = diagnose(robot, segments, log=log)
-    write_outputs(diagnosis, robot, out / "diagnosis", config.robot, log=log)
+    for path in write_outputs(diagnosis, robot, out / "diagnosis", config.robot):
+        log(f"[diagnose] wrote {path}")
     augmentation = load_augmentation(out / "diagnosis" / "augmentation.yaml", config.joint_names)
     trained = train_model(RobotModel.from_config(config, augmentation), config.robot, segments, baselines=baselines,
                           seed=seed, log=log, settings=config.filter)
@@ -440,12 +442,13 @@ def add_parser(subparsers: SubParsers) -> None:
                     "mismatch at the flange, link inertial parameters, drive gain, torque offset, ripple, joint "
                     "offset) greedily on held-out data within plausible priors, every link kept physically "
                     "consistent, and write diagnosis.json, augmentation.yaml, report.md (with warnings and "
-                    "look-alikes) and plots.")
+                    "look-alikes) and plots. An existing non-empty --out is replaced only with --force.")
     parser.add_argument("--config", required=True, help="estimator config YAML (e.g. config/panda.yaml)")
     parser.add_argument("--bags", nargs="+", required=True, metavar="BAG", help="contact-free bags")
-    parser.add_argument("--holdout", type=float, default=HOLDOUT,
-                        help="share of every recording (its end) held out for selection (default 0.3)")
-    parser.add_argument("--out", required=True, help="output directory")
+    add_sample_options(parser, HOLDOUT, "share of every bag (its end) held out for selection")
+    parser.add_argument("--out", required=True, help="output directory (new or empty; see --force)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace an existing --out whole (once the new output is complete)")
     parser.add_argument("--against", metavar="MODEL_DIR|AUGMENTATION",
                         help="diagnose relative to a model already corrected by this augmentation.yaml (or a model "
                              "directory's): only what changed since is named (a new tool on a calibrated robot); "
@@ -484,6 +487,7 @@ def _effect_list(text: str) -> tuple[str, ...]:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output(args.out, args.force)
     config = load_config(args.config)
     base = None
     if args.against:
@@ -493,12 +497,16 @@ def run(args: argparse.Namespace) -> int:
               flush=True)
     robot = RobotModel.from_config(config, base)
     print(f"[diagnose] URDF {config.urdf}", flush=True)
-    segments = load_recordings(args.bags, config, "diagnose")
+    segments = load_recordings(args.bags, config, "diagnose", tuple(args.trim), args.rate)
     log = lambda line: print(line, flush=True)   # noqa: E731
     if args.max_gain_error <= 0 or args.max_joint_offset <= 0:
         raise ConfigError("--max-gain-error and --max-joint-offset must be positive")
     priors = Priors(max_gain_error=args.max_gain_error, max_joint_offset=float(np.radians(args.max_joint_offset)),
                     payload_com=args.payload_com)
     diag = diagnose(robot, segments, args.holdout, effects=args.effects, log=log, priors=priors)
-    write_outputs(diag, robot, Path(args.out), config.robot, plots=not args.no_plots, log=log)
+    out = Path(args.out)
+    with staged_directory(out, args.force) as staging:
+        written = write_outputs(diag, robot, staging, config.robot, plots=not args.no_plots)
+    for path in written:
+        log(f"[diagnose] wrote {out / path.relative_to(staging)}")
     return 0

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import yaml
@@ -103,8 +102,9 @@ def augmentation(diag: Diagnosis, robot: RobotModel, robot_name: str = "") -> di
             "effects": entries}
 
 
-def write_outputs(diag: Diagnosis, robot: RobotModel, out: Path, robot_name: str = "", plots: bool = True,
-                  log: Callable[[str], None] = print) -> list[Path]:
+def write_outputs(diag: Diagnosis, robot: RobotModel, out: Path, robot_name: str = "",
+                  plots: bool = True) -> list[Path]:
+    """diagnosis.json, augmentation.yaml, report.md and (``plots``) the plots into ``out``; the paths written."""
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / "diagnosis.json", out / "augmentation.yaml", out / "report.md"]
     write_text_atomically(paths[0], json.dumps(diag.result, indent=2))
@@ -113,6 +113,4 @@ def write_outputs(diag: Diagnosis, robot: RobotModel, out: Path, robot_name: str
     if plots:
         from kvark_ros.gap.diagnosis_plots import plot_diagnosis   # matplotlib only when plotting
         paths.extend(plot_diagnosis(diag, robot, out))
-    for path in paths:
-        log(f"[diagnose] wrote {path}")
     return paths

@@ -15,15 +15,21 @@ agree. Stamps that are not finite (which bags cannot hold) still go through the 
 """
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from kvark_ros.core.config import EstimatorConfig
-from kvark_ros.core.estimation.inputs import EstimatorInputs
+from kvark_ros.core.estimation.inputs import EstimatorInputs, select_samples
 from kvark_ros.core.estimation.pairing import RESET, Sample, StreamPairer
 from kvark_ros.io import BagError, RecordedRun, TopicNames, read_run
+from kvark_ros.io.common import FLOAT64_ARRAY, JOINT_STATE
+from kvark_ros.io.info import topic_types
+from kvark_ros.io.topic_hints import missing_topic
+
+CONTACT_TORQUE = 1.0     # N·m: a true |τ_ext| above this on a joint is contact (about a joint's static friction)
 
 
 def _paired(run: RecordedRun, max_command_age: float) -> list[Sample]:
@@ -70,12 +76,13 @@ def _paired_rows(state_stamp: np.ndarray, command_stamp: np.ndarray,
 
 
 def estimator_inputs(run: RecordedRun, max_command_age: float = 0.01, path: str = "bag",
-                     torque_source: str = "effort_commands") -> EstimatorInputs:
+                     torque_source: str = "effort_commands", topics: TopicNames | None = None) -> EstimatorInputs:
     """Pair joint states with commands (module docstring); ``torque_source`` is ``input.torque_source``.
 
     ``joint_states_effort`` takes the joint states' effort even when the bag records commands. The two
     command sources take the command topic (Float64MultiArray or JointState alike); a bag without one
-    falls back to the joint states' effort, and ``torque_source`` of the result says so.
+    falls back to the joint states' effort, and ``torque_source`` of the result says so. ``topics``: the
+    ones ``run`` was read with from the bag ``path``, for an error that names the bag's command topics.
     """
     states = run.joint_states
     commands = run.commands
@@ -94,9 +101,17 @@ def estimator_inputs(run: RecordedRun, max_command_age: float = 0.01, path: str 
                                run.simulated)
     fresh = np.isfinite(states.effort).all(axis=1)
     if not fresh.any():
-        fix = ("set input.torque_source to effort_commands and record the commanded torque"
-               if torque_source == "joint_states_effort" else "record the commanded torque topic (effort_commands)")
-        raise BagError(f"{path}: no usable τ_m: no effort commands and no measured effort in joint_states; {fix}")
+        problem = "no usable τ_m: no effort commands and no measured effort in joint_states"
+        if torque_source == "joint_states_effort":
+            raise BagError(f"{path}: {problem}; set input.torque_source to effort_commands and record the commanded "
+                           "torque")
+        if topics is None:
+            raise BagError(f"{path}: {problem}; record the commanded torque on the topic input.effort_commands_topic "
+                           "names")
+        raise missing_topic(path, f"no usable τ_m: no effort commands on {topics.effort_commands} "
+                                  "(input.effort_commands_topic) and no measured effort in joint_states",
+                            topics.effort_commands, "input.effort_commands_topic", topic_types(path),
+                            {FLOAT64_ARRAY, JOINT_STATE}, exclude=(topics.joint_states, topics.external_torque))
     label = ("joint_states effort" if torque_source == "joint_states_effort"
              else "joint_states effort (the bag has no effort commands)")
     return EstimatorInputs(states.stamp[fresh], states.position[fresh], states.velocity[fresh],
@@ -106,16 +121,68 @@ def estimator_inputs(run: RecordedRun, max_command_age: float = 0.01, path: str 
 def read_inputs(bag: str | Path, config: EstimatorConfig) -> tuple[RecordedRun, EstimatorInputs]:
     """The run of ``bag`` read with the config's topics and joints, and its estimator inputs from the config's
     ``input.torque_source`` (what ``kvark train``, ``replay``, ``diagnose`` and ``benchmark`` read)."""
-    run = read_run(bag, config.joint_names, TopicNames.from_config(config.input))
-    return run, estimator_inputs(run, config.input.command_max_age, str(bag), config.input.torque_source)
+    topics = TopicNames.from_config(config.input)
+    run = read_run(bag, config.joint_names, topics)
+    return run, estimator_inputs(run, config.input.command_max_age, str(bag), config.input.torque_source, topics)
 
 
-def load_recordings(bags: Sequence[str], config: EstimatorConfig, tag: str) -> list[EstimatorInputs]:
-    """Estimator inputs of every bag, with one status line each (train and diagnose read bags this way)."""
+def add_trim_option(parser: argparse.ArgumentParser) -> None:
+    """``--trim START END`` (``select_samples``), as replay, train and diagnose take it."""
+    parser.add_argument("--trim", nargs=2, type=float, default=(0.0, 0.0), metavar=("START", "END"),
+                        help="drop the first START and the last END seconds of the bag(s) (a start-up, a stop, a "
+                             "contact)")
+
+
+def holdout_share(text: str) -> float:
+    """A held-out share in [0.05, 0.9] (argparse type of --holdout): enough to judge by and to fit on."""
+    value = float(text)
+    if not 0.05 <= value <= 0.9:
+        raise argparse.ArgumentTypeError(f"must be in [0.05, 0.9], got {value:g}")
+    return value
+
+
+def add_sample_options(parser: argparse.ArgumentParser, holdout: float, holdout_help: str) -> None:
+    """``--trim``, ``--rate`` and ``--holdout`` of the commands that learn from bags (train, diagnose)."""
+    add_trim_option(parser)
+    parser.add_argument("--rate", type=float, default=0.0, metavar="HZ",
+                        help="keep every k-th sample for about this rate (default 0: as recorded)")
+    parser.add_argument("--holdout", type=holdout_share, default=holdout, metavar="FRACTION",
+                        help=f"{holdout_help} (default {holdout:g})")
+
+
+def contact_warning(bag: str, run: RecordedRun, kept: EstimatorInputs, start: float) -> str | None:
+    """One line when the bag's ground-truth external torque (``/ground_truth/external_joint_torque``: simulated or
+    imported bags) exceeds ``CONTACT_TORQUE`` within the ``kept`` samples: the bag is not contact-free. Times are s
+    from ``start`` (the bag's first sample, as --trim counts them). Without ground truth nothing is checked."""
+    truth = run.external_torque
+    if truth is None or not len(kept):
+        return None
+    within = (truth.stamp >= kept.stamp[0]) & (truth.stamp <= kept.stamp[-1])
+    size = np.nan_to_num(np.abs(truth.effort[within]), nan=0.0)
+    over = np.flatnonzero((size > CONTACT_TORQUE).any(axis=1))
+    if not len(over):
+        return None
+    row, joint = np.unravel_index(np.argmax(size), size.shape)
+    elapsed = truth.stamp[within][over] - start
+    return (f"{bag}: ground truth shows external torque up to {size[row, joint]:.1f} N·m on {run.joint_names[joint]} "
+            f"at {elapsed[0]:.1f}-{elapsed[-1]:.1f} s (of {kept.stamp[-1] - start:.1f} s); use contact-free bags or "
+            "--trim it out")
+
+
+def load_recordings(bags: Sequence[str], config: EstimatorConfig, tag: str, trim: tuple[float, float] = (0.0, 0.0),
+                    rate: float = 0.0) -> list[EstimatorInputs]:
+    """Estimator inputs of every bag, trimmed and decimated (``select_samples``), with one status line each and a
+    warning line for a bag whose ground truth shows contact (``contact_warning``); train and diagnose read bags
+    this way."""
     segments = []
     for bag in bags:
-        inputs = read_inputs(bag, config)[1]
-        print(f"[{tag}] {bag}: {len(inputs)} samples (τ_m from {inputs.torque_source}, "
-              f"{inputs.dropped} dropped{', simulated' if inputs.simulated else ''})", flush=True)
-        segments.append(inputs)
+        run, inputs = read_inputs(bag, config)
+        kept = select_samples(inputs, trim, rate) if len(inputs) > 1 else inputs
+        count = f"{len(kept)}" if len(kept) == len(inputs) else f"{len(kept)} of {len(inputs)}"
+        print(f"[{tag}] {bag}: {count} samples (τ_m from {kept.torque_source}, "
+              f"{kept.dropped} dropped{', simulated' if kept.simulated else ''})", flush=True)
+        warning = contact_warning(bag, run, kept, float(inputs.stamp[0])) if len(inputs) else None
+        if warning is not None:
+            print(f"[{tag}] warning: {warning}", flush=True)
+        segments.append(kept)
     return segments

@@ -11,7 +11,6 @@ the first, and the others are copies of it with their own numbers
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 from collections.abc import Sequence
@@ -26,6 +25,7 @@ import numpy.typing as npt
 from rosbags.interfaces import Connection
 from rosbags.rosbag2 import StoragePlugin, Writer
 
+from kvark_ros.core.files import check_output, replace_path
 from kvark_ros.io.common import (
     BOOL,
     FLOAT64_ARRAY,
@@ -78,33 +78,29 @@ class BagWriter:
 
     Messages go into a temporary sibling directory that is renamed to ``path``
     only when the block exits without an exception, so a failed or interrupted
-    write never leaves a partial bag at ``path``. Stamps are seconds; for
-    messages with a header the header stamp is also the bag log time.
+    write never leaves a partial bag at ``path``. ``path`` follows every command's
+    output rule (``kvark_ros.core.files.check_output``): new or an empty directory,
+    else replaced whole only with ``force``. Stamps are seconds; for messages with
+    a header the header stamp is also the bag log time.
     """
 
-    def __init__(self, path: PathLike, storage: str = "mcap", overwrite: bool = False, source: str = "") -> None:
+    def __init__(self, path: PathLike, storage: str = "mcap", force: bool = False, source: str = "") -> None:
         self.path = Path(path)
         self.source = source          # metadata custom_data kvark_ros.source ("" = none): what wrote the bag
         self._plugin = _parse_storage(storage, self.path)
-        self.overwrite = overwrite
-        self._check_target()
+        self.force = force
+        check_output(self.path, force)
         self._tmpdir: Path | None = None
         self._writer: Writer | None = None
         self._connections: dict[str, tuple[str, Any]] = {}
 
     # -- lifecycle
 
-    def _check_target(self) -> None:
-        if (self.path.exists() or self.path.is_symlink()) and not self.overwrite:
-            raise bag_error(
-                self.path, "output exists already", "pass overwrite=True or choose a new path"
-            )
-
     def open(self) -> BagWriter:
         """Start writing into a temporary directory next to ``path``."""
         if self._writer is not None:
             raise RuntimeError("BagWriter is already open")
-        self._check_target()
+        check_output(self.path, self.force)
         parent = self.path.absolute().parent
         try:
             parent.mkdir(parents=True, exist_ok=True)
@@ -129,12 +125,13 @@ class BagWriter:
         return self
 
     def close(self) -> None:
-        """Finish the bag and move it to ``path`` (replacing it if overwrite=True)."""
+        """Finish the bag and move it to ``path`` (replacing it only with force=True)."""
         writer, tmpdir = self._require_open(), self._tmpdir
         assert tmpdir is not None
         try:
             writer.close()
-            self._commit(tmpdir / self.path.name)
+            check_output(self.path, self.force)            # an output that appeared while writing
+            replace_path(tmpdir / self.path.name, self.path)
         except BaseException:
             self._discard()
             raise
@@ -154,29 +151,6 @@ class BagWriter:
                 writer.abort()
         if tmpdir is not None:
             shutil.rmtree(tmpdir, ignore_errors=True)
-
-    def _commit(self, built: Path) -> None:
-        """Rename the finished bag onto ``path``; an old output is removed only after."""
-        target = self.path
-        if not (target.exists() or target.is_symlink()):
-            os.rename(built, target)
-            return
-        if not self.overwrite:
-            raise bag_error(
-                target, "output appeared while writing", "pass overwrite=True or choose a new path"
-            )
-        if target.is_dir() and not target.is_symlink():
-            trash = built.parent / ".replaced"
-            os.rename(target, trash)
-            try:
-                os.rename(built, target)
-            except BaseException:
-                os.rename(trash, target)
-                raise
-            shutil.rmtree(trash, ignore_errors=True)
-        else:  # a file or symlink where the bag directory should go
-            target.unlink()
-            os.rename(built, target)
 
     def __enter__(self) -> BagWriter:
         return self.open()
@@ -377,15 +351,16 @@ def write_run(
     run: RecordedRun,
     storage: str = "mcap",
     topics: TopicNames = TopicNames(),
-    overwrite: bool = False,
+    force: bool = False,
 ) -> None:
-    """Write ``run`` as a bag at ``path`` (atomic; see BagWriter); ``run.source`` goes into its metadata.
+    """Write ``run`` as a bag at ``path`` (atomic; see BagWriter; an existing output is replaced only with
+    ``force``); ``run.source`` goes into its metadata.
 
     Messages are interleaved in log-time order like a live recording. Commands
     are a Float64MultiArray in the run's joint order, labelled with the joint
     names so the order survives a reader that asks for another one.
     """
-    with BagWriter(path, storage=storage, overwrite=overwrite, source=run.source) as bag:
+    with BagWriter(path, storage=storage, force=force, source=run.source) as bag:
         write_run_messages(bag, run, topics)
 
 

@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 from typing import Any
 
+from kvark_ros.core.files import check_output
 from kvark_ros.io import write_run
 from kvark_ros.sim.robots import ROBOTS
 from kvark_ros.sim.scenarios import SCENARIOS, SESSION_S, run_scenario
@@ -53,9 +53,9 @@ def add_simulate_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap",
                         help="rosbag2 storage format; default: %(default)s")
     parser.add_argument("--out", metavar="BAGDIR", required=True,
-                        help="output bag directory (must not exist unless --overwrite)")
-    parser.add_argument("--overwrite", action="store_true",
-                        help="replace an existing bag at --out")
+                        help="output bag directory (new or empty; see --force)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace an existing --out (only once the new bag is complete)")
     parser.set_defaults(func=run_simulate)
     return parser
 
@@ -67,15 +67,12 @@ def add_parser(subparsers: Any) -> None:
 
 def run_simulate(args: argparse.Namespace) -> int:
     """Run ``kvark simulate`` for parsed arguments; prints progress and the real-time factor."""
-    if Path(args.out).exists() and not args.overwrite:     # refuse before minutes of simulation
-        print(f"kvark: error: {args.out} exists already; pass --overwrite or choose another --out",
-              file=sys.stderr)
-        return 1
     try:
+        check_output(args.out, args.force)         # refuse before minutes of simulation
         output = run_scenario(args.robot, args.scenario, args.seed, args.duration, args.plant,
                               progress=True, start_time=args.start_time)
-        write_run(args.out, output.run, storage=args.storage, overwrite=args.overwrite)
-    except ValueError as exc:          # bad plant file (PlantError), duration, existing output (BagError)
+        write_run(args.out, output.run, storage=args.storage, force=args.force)
+    except ValueError as exc:          # bad plant file (PlantError), duration, existing output (OutputExistsError)
         print(f"kvark: error: {exc}", file=sys.stderr)
         return 1
     samples = len(output.run.joint_states.stamp)

@@ -10,19 +10,24 @@ model and replays ``AUGMENTED_OBSERVERS`` again: ``results.json`` gains ``"augme
 The replays are ``kvark evaluate``'s tasks (one per test bag × observer) on a local Dask cluster, one worker
 process per core, with the saved model; each scenario's metrics.json, report.md and plots are then written
 here, from the observers' outputs the tasks return.
+
+The output directory is built beside ``--out`` and swapped in whole at the end (``staged_directory``); an existing
+non-empty one is replaced only with ``--force``, and then its bags are reused (hard-linked into the new output).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import shutil
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 from kvark_ros.core.config import EstimatorConfig, default_config_path, load_config, parse_observers
-from kvark_ros.core.files import write_text_atomically
-from kvark_ros.core.estimation.model_store import save_model
+from kvark_ros.core.files import check_output, staged_directory, write_text_atomically
+from kvark_ros.core.estimation.model_store import TrainedModel, save_model
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.learning.training import train_model
 from kvark_ros.io import write_run
@@ -68,8 +73,8 @@ def training_clocks(count: int) -> list[float]:
 
 def simulate_bags(robot: str, plan: BenchmarkPlan, folder: Path, seed: int, log,
                   plant: Path | None = None) -> tuple[list[Path], dict]:
-    """Training and test bags under ``folder`` (reused when already there); ``plant``: a plant file
-    instead of the robot's default.
+    """Training and test bags under ``folder`` (those already there are reused, see ``reuse_bags``); ``plant``: a
+    plant file instead of the robot's default.
 
     The training recordings start evenly spread over the simulator's session after power-on (``training_clocks``),
     as a user records training data from cold to warm; each test recording's start is drawn from its seed.
@@ -91,6 +96,19 @@ def simulate_bags(robot: str, plan: BenchmarkPlan, folder: Path, seed: int, log,
     train = [paths[label] for label, scenario, *_ in jobs if scenario == "excitation"]
     tests = {scenario: paths[f"test_{scenario}"] for scenario in TEST_SCENARIOS}
     return train, tests
+
+
+def reuse_bags(old: Path, new: Path) -> None:
+    """The bags of the output a ``--force`` run replaces, hard-linked into the new one (copied where a link fails),
+    so only what is missing is simulated; the old output stays whole until the swap."""
+    def link_or_copy(source: str, target: str) -> None:
+        try:
+            os.link(source, target)
+        except OSError:
+            shutil.copy2(source, target)
+
+    if old.is_dir() and not old.is_symlink():
+        shutil.copytree(old, new, copy_function=link_or_copy, dirs_exist_ok=True)
 
 
 RMSE_LIMITS = (("momentum", 0.8), ("kf", 0.8), ("oracle", 1.3))   # K-VARK's joint RMSE ≤ limit × the other's
@@ -200,9 +218,12 @@ def add_parser(subparsers: SubParsers) -> None:
                     "replay every observer and write DIR/results.json and DIR/report.md with tables like the "
                     "papers'. The training bags start evenly spread over the simulator's first half hour after "
                     "power-on (cold to warm, the drifting offsets at spread phases). Bags are kept under DIR/bags "
-                    "and reused on a rerun.")
+                    "and reused on a rerun with --force. DIR is written whole: an existing non-empty DIR is replaced "
+                    "only with --force.")
     parser.add_argument("--robot", default="panda", choices=("panda", "ur5"), help="simulated robot (default panda)")
-    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--out", required=True, help="output directory (new or empty; see --force)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace an existing --out whole once the new output is complete (its bags are reused)")
     parser.add_argument("--quick", action="store_true", help="less data: finishes in a few minutes")
     parser.add_argument("--seed", type=int, default=0, help="offset of every simulation seed (default 0)")
     parser.add_argument("--observers", default="all", help="comma-separated observers or 'all' (default)")
@@ -225,16 +246,17 @@ def add_parser(subparsers: SubParsers) -> None:
     real.add_argument("--rate", type=float, default=500.0,
                       help="keep every k-th sample for about this rate, Hz (default 500; 0: as recorded)")
     real.add_argument("--no-baselines", action="store_true", help="skip the learned baselines (faster)")
+    real.add_argument("--no-plots", action="store_true", help="skip the figures of the held-out part (report.md only)")
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output(args.out, args.force)
     if args.real:
         from kvark_ros.tools.real_benchmark import run_real
         return run_real(args)
     started = time.perf_counter()
     plan = QUICK if args.quick else FULL
-    out = Path(args.out)
 
     def log(line: str) -> None:
         print(line, flush=True)
@@ -243,6 +265,23 @@ def run(args: argparse.Namespace) -> int:
     from kvark_ros.sim.plant import PLANT_DIR, load_plant
     plant_path = Path(args.plant) if args.plant else PLANT_DIR / f"{args.robot}_{DEFAULT_PLANT}.yaml"
     load_plant(plant_path, config.n_joints)      # a bad plant file fails here, not in the simulation or the oracle
+    with staged_directory(args.out, args.force) as out:
+        reuse_bags(Path(args.out) / "bags", out / "bags")
+        results, trained = simulated_benchmark(args, config, plan, plant_path, out, log)
+        write_text_atomically(out / "results.json", json.dumps(results, indent=2))
+        write_report(out, results, trained.info, args.robot, plan, time.perf_counter() - started)
+    for line in acceptance(results["scenarios"]):
+        log(line)
+    if args.augment:
+        log(augmentation_section(results))
+    log(f"[benchmark] wrote {args.out}/results.json and {args.out}/report.md in "
+        f"{(time.perf_counter() - started) / 60:.1f} min")
+    return 0
+
+
+def simulated_benchmark(args: argparse.Namespace, config: EstimatorConfig, plan: BenchmarkPlan, plant_path: Path,
+                        out: Path, log) -> tuple[dict[str, Any], TrainedModel]:
+    """Simulate, train, replay every observer into ``out``; (results.json's content, the trained model)."""
     train_bags, test_bags = simulate_bags(args.robot, plan, out / "bags", args.seed, log, plant_path)
     robot = RobotModel.from_config(config)
     segments = [read_inputs(bag, config)[1] for bag in train_bags]
@@ -259,14 +298,7 @@ def run(args: argparse.Namespace) -> int:
         if args.augment:
             results["augmented"] = augmented_run(config, robot, segments, test_bags, out, args.seed, log,
                                                  client, setup)
-    write_text_atomically(out / "results.json", json.dumps(results, indent=2))
-    write_report(out, results, trained.info, args.robot, plan, time.perf_counter() - started)
-    for line in acceptance(results["scenarios"]):
-        log(line)
-    if args.augment:
-        log(augmentation_section(results))
-    log(f"[benchmark] wrote {out}/results.json and {out}/report.md in {(time.perf_counter() - started) / 60:.1f} min")
-    return 0
+    return results, trained
 
 
 def replay_scenarios(client: Client, setup: Setup, test_bags: Mapping[str, Path], observers: Sequence[str],
@@ -286,7 +318,7 @@ def replay_scenarios(client: Client, setup: Setup, test_bags: Mapping[str, Path]
     robot = loaded(setup)[2]
     scenarios = {}
     for scenario, bag in test_bags.items():
-        metrics = merged[str(bag)]
+        metrics = {**merged[str(bag)], "bag": f"{bag.parent.name}/{bag.name}"}     # relative to the output
         inputs, truth, _ = decoded(setup, str(bag))
         (out / scenario).mkdir(parents=True, exist_ok=True)
         write_text_atomically(out / scenario / "metrics.json", json.dumps(metrics, indent=2))

@@ -37,7 +37,7 @@ from kvark_ros.core.config import (
     load_config,
     parse_observers,
 )
-from kvark_ros.core.files import write_text_atomically
+from kvark_ros.core.files import check_output, staged_directory, write_text_atomically
 from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.core.estimation.model_checks import measured_rate, model_warnings
 from kvark_ros.core.estimation.model_store import MODEL_FILE, TrainedModel, load_model
@@ -296,7 +296,8 @@ def add_parser(subparsers: SubParsers) -> None:
         description="Run every bag × observer as one task on a Dask cluster (a local one by default: one worker "
                     "process per core; or a running scheduler) with the figures `kvark replay --no-plots` writes, "
                     "and merge them into DIR/results.json and DIR/report.md. A bag that fails is an error row; the "
-                    "others still finish, and the exit code is 1.")
+                    "others still finish, and the exit code is 1. An existing non-empty DIR is replaced only with "
+                    "--force.")
     parser.add_argument("--bags", nargs="+", required=True, metavar="GLOB",
                         help="bags or glob patterns (quote them: 'bags/panda_*'); a pattern that matches nothing is "
                              "reported as a missing bag")
@@ -315,11 +316,14 @@ def add_parser(subparsers: SubParsers) -> None:
                               "a local cluster")
     cluster.add_argument("--workers", type=int, metavar="N",
                          help="worker processes of the local cluster (default: one per core)")
-    parser.add_argument("--out", required=True, help="output directory")
+    parser.add_argument("--out", required=True, help="output directory (new or empty; see --force)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace an existing --out whole (once the new output is complete)")
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output(args.out, args.force)
     if args.workers is not None and args.workers < 1:
         raise ConfigError(f"--workers {args.workers}: give at least 1")
     config_path = args.config or default_config_path(load_model(args.model).robot)
@@ -345,14 +349,14 @@ def run(args: argparse.Namespace) -> int:
     seconds = time.perf_counter() - started
     results = merge(bags, observers, tasks)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_text_atomically(out / "results.json", json.dumps(results, indent=2))
     where = f"the scheduler {args.scheduler}" if args.scheduler else "a local cluster"
-    write_report(out, results, [
-        f"Model `{args.model}` (trained on {source}), config `{config_path}`, ground truth `{args.ground_truth}`: "
-        f"{len(bags)} bag(s) × {len(observers)} observer(s) on {where} of {workers} worker(s) in {seconds:.1f} s.",
-        "Each row is what `kvark replay --no-plots` writes into metrics.json for that bag and observer; "
-        "means over the bags that have the figure (no ground truth: no error figures)."])
+    with staged_directory(out, args.force) as staging:
+        write_text_atomically(staging / "results.json", json.dumps(results, indent=2))
+        write_report(staging, results, [
+            f"Model `{args.model}` (trained on {source}), config `{config_path}`, ground truth `{args.ground_truth}`: "
+            f"{len(bags)} bag(s) × {len(observers)} observer(s) on {where} of {workers} worker(s) in {seconds:.1f} s.",
+            "Each row is what `kvark replay --no-plots` writes into metrics.json for that bag and observer; "
+            "means over the bags that have the figure (no ground truth: no error figures)."])
     for warning in sorted({w for entry in results["bags"].values() for w in entry.get("warnings", [])}):
         log(f"[evaluate] warning: {warning}")
     log(f"[evaluate] {len(tasks)} tasks in {seconds:.1f} s, {results['failed']} failed; wrote {out}/results.json "

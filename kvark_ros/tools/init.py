@@ -26,7 +26,7 @@ import pinocchio as pin
 
 from kvark_ros.core.config import EXAMPLE_ROBOT_DATA_PREFIX, ConfigError, load_config
 from kvark_ros.core.config_sources import ConfigDocument, comment_lines, config_text
-from kvark_ros.core.files import write_text_atomically
+from kvark_ros.core.files import check_output, write_text_atomically
 from kvark_ros.core.estimation.robot_model import RobotModel, resolve_urdf
 from kvark_ros.tools.xacro_files import expand_xacro, parse_assignments
 
@@ -182,12 +182,12 @@ def add_parser(subparsers: SubParsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
+    check_output(out, args.force)
     if not re.fullmatch(r"[A-Za-z0-9_-]+", args.robot):
         raise ConfigError(f"--robot {args.robot!r}: use letters, digits, _ and - only (it names files)")
     xml, urdf_value, expanded, urdf_note = _urdf(args, out)
-    for path in (out, expanded):
-        if path is not None and path.exists() and not args.force:
-            raise ConfigError(f"{path}: exists already; pass --force to replace it, or choose another --out")
+    if expanded is not None:
+        check_output(expanded, args.force)
     try:
         model = pin.buildModelFromXML(xml)
     except RuntimeError as exc:

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from kvark_ros.core.files import OutputExistsError
 from kvark_ros.io import (
     BagError,
     BagWriter,
@@ -317,16 +318,17 @@ def test_corrupt_sqlite_raises_bag_error(tmp_path: Path) -> None:
 
 def test_refuses_to_overwrite(tmp_path: Path) -> None:
     path = tmp_path / "run"
+    path.mkdir()                    # an empty directory is no output: written without force
     write_run(path, make_run(seed=1))
-    with pytest.raises(BagError, match="overwrite=True") as err:
+    with pytest.raises(OutputExistsError, match="exists and is not empty; pass --force") as err:
         write_run(path, make_run(seed=2))
     assert str(path) in str(err.value)
-    with pytest.raises(BagError):
+    with pytest.raises(OutputExistsError):
         BagWriter(path)
     np.testing.assert_array_equal(  # the old bag is intact
         read_run(path).joint_states.position, make_run(seed=1).joint_states.position
     )
-    write_run(path, make_run(seed=2), storage="sqlite3", overwrite=True)
+    write_run(path, make_run(seed=2), storage="sqlite3", force=True)
     np.testing.assert_array_equal(
         read_run(path).joint_states.position, make_run(seed=2).joint_states.position
     )
@@ -334,15 +336,15 @@ def test_refuses_to_overwrite(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # no temp leftovers
 
 
-@pytest.mark.parametrize("overwrite", [False, True])
-def test_failed_write_leaves_no_partial_output(tmp_path: Path, overwrite: bool) -> None:
+@pytest.mark.parametrize("force", [False, True])
+def test_failed_write_leaves_no_partial_output(tmp_path: Path, force: bool) -> None:
     path = tmp_path / "out"
-    if overwrite:
+    if force:
         write_run(path, make_run(seed=3))
-    with pytest.raises(RuntimeError, match="boom"), BagWriter(path, overwrite=overwrite) as bag:
+    with pytest.raises(RuntimeError, match="boom"), BagWriter(path, force=force) as bag:
         bag.joint_state("/joint_states", 1.0, ARM, np.zeros(7), np.zeros(7), np.zeros(7))
         raise RuntimeError("boom")
-    if overwrite:  # the previous bag survives untouched
+    if force:  # the previous bag survives untouched
         np.testing.assert_array_equal(
             read_run(path).joint_states.effort, make_run(seed=3).joint_states.effort
         )

@@ -354,7 +354,7 @@ def test_cli_writes_a_bag_and_reports_the_real_time_factor(tmp_path: Path,
     assert args.func(args) == 0
     assert "real-time factor" in capsys.readouterr().out
     assert any(out.glob("*.db3"))
-    assert args.func(args) == 1                          # output exists: refused without --overwrite
+    assert args.func(args) == 1                          # output exists: refused without --force
     bad = parser.parse_args(["simulate", "--scenario", "payload", "--plant", str(tmp_path / "none.yaml"),
                              "--out", str(tmp_path / "x")])
     assert bad.func(bad) == 1

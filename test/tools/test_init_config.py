@@ -171,7 +171,7 @@ def test_existing_config_is_refused_unless_force(tmp_path, capsys):
     out = tmp_path / "ur.yaml"
     out.write_text("old")
     assert _init("--urdf", "example-robot-data:ur5", "--robot", "ur", "--out", out) == 1
-    assert "exists already; pass --force" in capsys.readouterr().err and out.read_text() == "old"
+    assert "exists and is not empty; pass --force" in capsys.readouterr().err and out.read_text() == "old"
     assert _init("--urdf", "example-robot-data:ur5", "--robot", "ur", "--out", out, "--force") == 0
     load_config(out)
 

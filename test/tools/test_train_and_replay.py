@@ -179,7 +179,7 @@ def test_cli_train_on_a_bag_without_joint_states_fails_in_one_line_and_keeps_the
             bag.float64_array("/effort_commands", k / RATE, np.zeros(N))
     capsys.readouterr()
     code = main(["train", "--config", str(CONFIG), "--bags", str(bags.mcap), str(no_states),
-                 "--out", str(target), "--no-baselines", "--no-plots"])
+                 "--out", str(target), "--no-baselines", "--no-plots", "--force"])
     assert code == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("kvark: error:") and "\n" not in err
@@ -198,7 +198,7 @@ def test_training_that_raises_keeps_the_previous_model(bags, cli_model, tmp_path
     target, before = _previous_model(cli_model, tmp_path)
     with pytest.raises(RuntimeError, match="GP fit failed"):
         main(["train", "--config", str(CONFIG), "--bags", str(bags.mcap), "--out", str(target),
-              "--no-baselines", "--no-plots"])
+              "--no-baselines", "--no-plots", "--force"])
     assert _snapshot(target) == before
     assert sorted(p.name for p in target.parent.iterdir()) == ["panda"]
 

@@ -10,8 +10,6 @@ swaps it in with renames, so a failed save never leaves a half-written or broken
 from __future__ import annotations
 
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -20,7 +18,7 @@ import yaml
 
 from kvark_ros import __version__
 from kvark_ros.core.estimation.augmentation import Augmentation, AugmentationError, parse_augmentation
-from kvark_ros.core.files import read_yaml, umask_mode
+from kvark_ros.core.files import read_yaml, staged_directory
 from kvark_ros.core.estimation.observers.base import DEFAULT_SAMPLE_PERIOD, FilterTuning
 from kvark_ros.core.estimation.observers.momentum_noise import MomentumNoise
 from kvark_ros.core.estimation.residual import LEARNED_BASELINES, KMPResidualModel, ResidualModelError
@@ -63,49 +61,30 @@ class TrainedModel:
 
 def save_model(directory: str | os.PathLike, model: TrainedModel) -> None:
     """Write ``model`` to ``directory`` atomically (replacing an existing model only on success)."""
-    target = Path(directory)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.", dir=target.parent))
-    try:
-        staging.chmod(umask_mode(0o777))          # it becomes the model directory: readable as mkdir makes it
-        model.residual.save(staging)
-        for baseline in model.baselines.values():
-            baseline.save(staging)
-        # info (long, free-form) comes before the keys load_model requires, so a file cut short anywhere in it
-        # lacks them and is refused.
-        document = {"format": MODEL_FORMAT, "kvark_ros_version": __version__, "robot": model.robot,
-                    "joint_names": list(model.joint_names), "info": model.info,
-                    "filter_tuning": model.tuning.to_dict(),
-                    "baselines": {name: model.baseline_tunings[name].to_dict() for name in model.baselines},
-                    "momentum_noise": None if model.momentum_noise is None else model.momentum_noise.to_dict(),
-                    "augmentation_sha256": None if model.augmentation is None else model.augmentation.sha256,
-                    "sample_rate_hz": model.sample_rate,
-                    "stiction": None if model.stiction is None else model.stiction.to_dict(),
-                    "interval_scale": None if model.interval_scale is None else model.interval_scale.to_dict()}
-        if model.augmentation is not None:
-            (staging / AUGMENTATION_FILE).write_text(model.augmentation.text)
-        (staging / MODEL_FILE).write_text(yaml.safe_dump(document, sort_keys=False))
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    _swap_in(staging, target)
+    with staged_directory(directory, force=True) as staging:
+        write_model_files(staging, model)
 
 
-def _swap_in(staging: Path, target: Path) -> None:
-    """Replace ``target`` by ``staging``; on any failure the previous ``target`` is put back."""
-    backup = target.with_name(f".{target.name}.previous")
-    shutil.rmtree(backup, ignore_errors=True)
-    had_target = target.exists()
-    try:
-        if had_target:
-            os.replace(target, backup)
-        os.replace(staging, target)
-    except BaseException:
-        if had_target and backup.exists() and not target.exists():
-            os.replace(backup, target)
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
-    shutil.rmtree(backup, ignore_errors=True)
+def write_model_files(directory: Path, model: TrainedModel) -> None:
+    """The model's files in the existing, empty ``directory`` (``save_model`` stages them; ``kvark train`` adds
+    its plots before the swap)."""
+    model.residual.save(directory)
+    for baseline in model.baselines.values():
+        baseline.save(directory)
+    # info (long, free-form) comes before the keys load_model requires, so a file cut short anywhere in it
+    # lacks them and is refused.
+    document = {"format": MODEL_FORMAT, "kvark_ros_version": __version__, "robot": model.robot,
+                "joint_names": list(model.joint_names), "info": model.info,
+                "filter_tuning": model.tuning.to_dict(),
+                "baselines": {name: model.baseline_tunings[name].to_dict() for name in model.baselines},
+                "momentum_noise": None if model.momentum_noise is None else model.momentum_noise.to_dict(),
+                "augmentation_sha256": None if model.augmentation is None else model.augmentation.sha256,
+                "sample_rate_hz": model.sample_rate,
+                "stiction": None if model.stiction is None else model.stiction.to_dict(),
+                "interval_scale": None if model.interval_scale is None else model.interval_scale.to_dict()}
+    if model.augmentation is not None:
+        (directory / AUGMENTATION_FILE).write_text(model.augmentation.text)
+    (directory / MODEL_FILE).write_text(yaml.safe_dump(document, sort_keys=False))
 
 
 def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None = None,

@@ -42,10 +42,10 @@ from kvark_ros.core.learning.tuning import match_covariances, virtual_measuremen
 N_SUPPORT = 40               # GMR support points per joint (q̇ only)
 N_SUPPORT_2D = 80            # when a joint takes a second input: the points cover a curve in a plane
 INPUT_MODES = ("auto",) + INPUT_KINDS     # --residual-inputs: choose per joint, or one kind for all
-SELECTION_HOLDOUT = 0.2      # end of every recording held out to choose the inputs (contiguous, unseen motion)
 MIN_NLL_GAIN = 0.05          # nats per sample a second input must gain over q̇ alone to be kept
 N_COMPONENTS = 20            # GMM components (paper v2: 20)
-HOLDOUT = 0.2                # share of samples held out for λ₂ calibration (paper v2 §V-B)
+HOLDOUT = 0.2                # share held out (``--holdout``): random samples for λ₂ calibration (paper v2 §V-B) and
+                             # the end of every recording to choose the inputs (contiguous, unseen motion)
 COVERAGE_TARGET = 0.95       # λ₂ is set so that 95 % of held-out residuals fall in μ ± 1.96 σ
 LAMBDA2_GRID = np.geomspace(1e-2, 1e8, 61)
 SAVGOL_WINDOW = 0.15         # s, window of the acceleration and torque filter (75 samples at 500 Hz)
@@ -165,10 +165,11 @@ def _n_support(kinds: Sequence[str]) -> int:
 
 @single_threaded
 def choose_inputs(data: TrainingData, mode: str, seed: int, log: Callable[[str], None],
-                  executor: Executor | None = None) -> tuple[tuple[str, ...], dict[str, list[float]]]:
+                  executor: Executor | None = None,
+                  holdout: float = HOLDOUT) -> tuple[tuple[str, ...], dict[str, list[float]]]:
     """Each joint's residual inputs (``INPUT_KINDS``) and the held-out log-likelihood behind the choice.
 
-    ``mode`` ``auto``: every kind is fitted on all but the last ``SELECTION_HOLDOUT`` of every recording,
+    ``mode`` ``auto``: every kind is fitted on all but the last ``holdout`` share of every recording,
     its λ₂ calibrated and its mean Gaussian log-likelihood per sample taken on that end (contiguous, so it
     measures motion the model has not seen, not interpolation between neighbouring samples); a joint keeps
     q̇ alone unless a second input gains ``MIN_NLL_GAIN``. Any other mode is one kind for every joint. The joints
@@ -179,7 +180,7 @@ def choose_inputs(data: TrainingData, mode: str, seed: int, log: Callable[[str],
         return (mode,) * n, {}
     if mode != "auto":
         raise ValueError(f"residual inputs must be one of {list(INPUT_MODES)}, got {mode!r}")
-    tail = np.concatenate([np.arange(len(seg.stamp)) >= (1.0 - SELECTION_HOLDOUT) * len(seg.stamp)
+    tail = np.concatenate([np.arange(len(seg.stamp)) >= (1.0 - holdout) * len(seg.stamp)
                            for seg in data.segments])
     log(f"[train] residual inputs: fitting {', '.join(INPUT_KINDS)} on every joint ...")
     fits = {}
@@ -198,7 +199,7 @@ def choose_inputs(data: TrainingData, mode: str, seed: int, log: Callable[[str],
     table = np.array([scores[kind] for kind in INPUT_KINDS])
     best = np.argmax(table, axis=0)
     chosen = tuple(INPUT_KINDS[b] if table[b, j] >= table[0, j] + MIN_NLL_GAIN else "qd" for j, b in enumerate(best))
-    log(f"[train] residual inputs by held-out log-likelihood (nats/sample, last {SELECTION_HOLDOUT:.0%} of each "
+    log(f"[train] residual inputs by held-out log-likelihood (nats/sample, last {holdout:.0%} of each "
         f"recording): " + "; ".join(f"{kind} {np.round(scores[kind], 2).tolist()}" for kind in INPUT_KINDS)
         + f" → {list(chosen)}")
     return chosen, scores
@@ -233,10 +234,10 @@ def _fit_baselines(data: TrainingData, qd_fit: np.ndarray, tau_fit: np.ndarray, 
 def train_model(robot: RobotModel, robot_name: str, segments: Sequence[EstimatorInputs], *,
                 baselines: bool = True, seed: int = 0, info: dict | None = None, residual_inputs: str = "auto",
                 log: Callable[[str], None] = print, jobs: int | None = None,
-                settings: FilterSettings | None = None) -> TrainedModel:
+                settings: FilterSettings | None = None, holdout: float = HOLDOUT) -> TrainedModel:
     """Everything the observers need, from contact-free recordings of ``robot``; ``residual_inputs`` is one
     of ``INPUT_MODES`` (``choose_inputs``); ``settings``: the ``filter.*`` keys the kvark intervals are calibrated
-    with (``calibrate_intervals``; None: the defaults).
+    with (``calibrate_intervals``; None: the defaults); ``holdout``: the share held out (``HOLDOUT``).
 
     The joints' fits are independent and run in ``jobs`` worker processes (None: every available core, 1: one after
     the other here), each with its own seed and one BLAS thread: the model is the same bit for bit. BLAS runs one
@@ -247,9 +248,9 @@ def train_model(robot: RobotModel, robot_name: str, segments: Sequence[Estimator
     log(f"[train] robot model along {len(segments)} recording(s): {len(data.qd)} samples "
         f"({time.perf_counter() - started:.1f} s)")
     with joint_workers(jobs, data.qd.shape[1]) as executor:
-        kinds, selection = choose_inputs(data, residual_inputs, seed, log, executor)
+        kinds, selection = choose_inputs(data, residual_inputs, seed, log, executor, holdout)
         rng = np.random.default_rng(seed)
-        held_out = rng.random(len(data.qd)) < HOLDOUT
+        held_out = rng.random(len(data.qd)) < holdout
         qd_fit, tau_fit = data.qd[~held_out], data.tau_r[~held_out]
         q_held, g_held = data.q[held_out], data.g[held_out]
         log(f"[train] KMP residual of {len(kinds)} joints: GMM → GMR, GP fit on {(~held_out).sum()} samples, "

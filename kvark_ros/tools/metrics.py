@@ -20,7 +20,8 @@ def _rounded(values: np.ndarray | float) -> Any:
 
 
 def observer_metrics(result: Any, truth: Any, stamp: np.ndarray) -> dict[str, Any]:
-    """metrics.json's per-observer entry: joint/force/moment RMSE, |error| statistics, coverage95, µs/step,
+    """metrics.json's per-observer entry: joint/force/moment RMSE (:func:`wrench_metrics`: force and moment over the
+    samples with a known true wrench), |error| statistics, coverage95, µs/step,
     and the contact and collision flags' figures (:func:`contact_metrics`, under ``contact`` and ``collision``);
     ``collision_share`` (share of estimates flagged) and a ``--tare-at`` tare's outcome also without truth.
 
@@ -56,13 +57,21 @@ def observer_metrics(result: Any, truth: Any, stamp: np.ndarray) -> dict[str, An
         entry.update(calibration_metrics(error, result.tau_std[rows],
                                          None if result.mahalanobis is None else result.mahalanobis[rows]))
     if truth.wrench is not None:
-        wrench_rows = rows & np.isfinite(truth.wrench).all(axis=1)
-        wrench_error = result.wrench[wrench_rows] - truth.wrench[wrench_rows]
-        wrench_rmse = np.sqrt(np.mean(wrench_error ** 2, axis=0))
-        entry.update({"force_rmse": _rounded(wrench_rmse[:3]), "moment_rmse": _rounded(wrench_rmse[3:]),
-                      "force_rmse_mean": _rounded(wrench_rmse[:3].mean()),
-                      "moment_rmse_mean": _rounded(wrench_rmse[3:].mean())})
+        entry.update(wrench_metrics(result.wrench, truth.wrench, rows))
     return entry
+
+
+def wrench_metrics(wrench: np.ndarray, truth: np.ndarray, rows: np.ndarray) -> dict[str, Any]:
+    """Force/moment RMSE of estimated wrenches (T, 6) over ``rows`` where the true wrench (T, 6) is known (finite:
+    ``wrench_truth`` leaves a push the wrist sensor cannot see NaN), and ``wrench_truth_samples``, how many those
+    are; the RMSEs are None when there are none (contact not at the sensor)."""
+    observed = rows & np.isfinite(truth).all(axis=1)
+    entry: dict[str, Any] = {"wrench_truth_samples": int(observed.sum())}
+    if not observed.any():
+        return {**entry, **dict.fromkeys(("force_rmse", "moment_rmse", "force_rmse_mean", "moment_rmse_mean"))}
+    rmse = np.sqrt(np.mean((wrench[observed] - truth[observed]) ** 2, axis=0))
+    return {**entry, "force_rmse": _rounded(rmse[:3]), "moment_rmse": _rounded(rmse[3:]),
+            "force_rmse_mean": _rounded(rmse[:3].mean()), "moment_rmse_mean": _rounded(rmse[3:].mean())}
 
 
 CALIBRATION_KEYS = ("coverage95_per_joint", "vector_coverage95", "any_joint_miss_share", "any_joint_miss_nominal",

@@ -26,8 +26,8 @@ from kvark_ros.core.config import (
     load_config,
     parse_observers,
 )
-from kvark_ros.core.files import write_text_atomically
-from kvark_ros.core.estimation.inputs import EstimatorInputs
+from kvark_ros.core.files import staged_directory, write_text_atomically
+from kvark_ros.core.estimation.inputs import EstimatorInputs, select_samples
 from kvark_ros.core.estimation.model_store import save_model
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.learning.training import train_model
@@ -39,21 +39,12 @@ from kvark_ros.tools.replay import run_observer, zero_truth
 LEARNED_BASELINES = ("gpadkf", "nnadkf", "gmr_gp")
 
 
-def _rows(inputs: EstimatorInputs, rows: np.ndarray) -> EstimatorInputs:
-    return EstimatorInputs(inputs.stamp[rows], inputs.q[rows], inputs.qd[rows], inputs.tau_m[rows],
-                           inputs.torque_source, 0)
-
-
 def split(inputs: EstimatorInputs, train_share: float, rate: float) -> tuple[EstimatorInputs, EstimatorInputs]:
     """(training part, held-out part) by time, every k-th sample kept so the rate is about ``rate`` Hz
-    (0: as recorded)."""
-    step = 1
-    if rate > 0:
-        recorded = 1.0 / float(np.median(np.diff(inputs.stamp)))
-        step = max(1, int(round(recorded / rate)))
-    kept = np.arange(0, len(inputs), step)
+    (0: as recorded; ``decimation_step``)."""
+    kept = select_samples(inputs, rate=rate)
     cut = inputs.stamp[0] + train_share * (inputs.stamp[-1] - inputs.stamp[0])
-    return _rows(inputs, kept[inputs.stamp[kept] < cut]), _rows(inputs, kept[inputs.stamp[kept] >= cut])
+    return kept.take(kept.stamp < cut), kept.take(kept.stamp >= cut)
 
 
 def evaluate(config: EstimatorConfig, trained: Any, held: EstimatorInputs, observers: Sequence[str],
@@ -116,9 +107,14 @@ def per_joint_coverage(nominal: dict[str, Any], augmented: dict[str, Any], joint
 
 
 def run_real(args: argparse.Namespace) -> int:
-    """The ``--real`` job (module docstring)."""
+    """The ``--real`` job (module docstring), built beside ``--out`` and swapped in whole (``staged_directory``)."""
+    with staged_directory(args.out, args.force) as out:
+        return _run_real(args, out)
+
+
+def _run_real(args: argparse.Namespace, out: Path) -> int:
+    """``run_real`` writing into ``out``."""
     started = time.perf_counter()
-    out = Path(args.out)
 
     def log(line: str) -> None:
         print(line, flush=True)
@@ -156,6 +152,10 @@ def run_real(args: argparse.Namespace) -> int:
     results["augmented"] = evaluate(config, augmented, held, observers, log)
     write_text_atomically(out / "results.json", json.dumps(results, indent=2))
     write_text_atomically(out / "report.md", report(results))
+    if not args.no_plots:      # matplotlib only when drawing, as replay
+        from kvark_ros.tools.real_figures import write_real_figures
+        write_real_figures(out, config, held, {"nominal": nominal, "augmented": augmented}, results)
     log(report(results))
-    log(f"[benchmark] wrote {out}/results.json and {out}/report.md in {(time.perf_counter() - started) / 60:.1f} min")
+    log(f"[benchmark] wrote {args.out}/results.json and {args.out}/report.md in "
+        f"{(time.perf_counter() - started) / 60:.1f} min")
     return 0

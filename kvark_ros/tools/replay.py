@@ -9,6 +9,8 @@ bag carries (``topic``, simulation), the wrist F/T through ``τ = Jᵀ w`` (``ft
 two-run difference against a ``--reference-bag`` recorded without the load (``reference``, v2 eq. 40,
 our sign: ``τ_ext = τ_free − τ_loaded``); ``zero`` says the robot touched nothing (free motion), so every
 estimate is error. ``--trim START END`` drops the first START and last END seconds (a start-up or a stop).
+The estimates bag is written by default for up to ``ESTIMATES_BAG_S`` s of data, beyond only with
+``--estimates-bag`` (every observer's outputs at every sample: a 1 kHz recording of minutes gave 200 MB).
 """
 from __future__ import annotations
 
@@ -21,30 +23,34 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
-from kvark_ros.core.config import OBSERVER_NAMES, ConfigError, EstimatorConfig, load_config, parse_observers
+from kvark_ros.core.config import OBSERVER_NAMES, EstimatorConfig, load_config, parse_observers
 from kvark_ros.core.estimation.estimator import Estimator
-from kvark_ros.core.files import write_text_atomically
+from kvark_ros.core.files import check_output, staged_directory, write_text_atomically
 from kvark_ros.core.estimation.tare import TareError
-from kvark_ros.core.estimation.inputs import EstimatorInputs
+from kvark_ros.core.estimation.inputs import EstimatorInputs, trimmed_rows
 from kvark_ros.core.estimation.model_store import TrainedModel, load_model
 from kvark_ros.core.estimation.model_checks import measured_rate, model_warnings
 from kvark_ros.core.estimation.observers import ResidualPredictor
 from kvark_ros.core.estimation.robot_model import RobotModel, condition_numbers, urdf_sha256
 from kvark_ros.io import (BagError, BagWriter, RecordedRun, bool_messages, float64_array_messages,
                           joint_state_messages, load_message_types, wrench_messages, write_run_messages)
-from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.alignment import add_trim_option, read_inputs
 from kvark_ros.tools.reference import align_reference, interpolate
+from kvark_ros.tools.truth_topics import missing_truth
 from kvark_ros.tools.metrics import mahalanobis_rows, observer_metrics
+from kvark_ros.tools.wrench_truth import sensed_wrench
 
 if TYPE_CHECKING:
     from kvark_ros.cli import SubParsers
 
 OUTPUT_PREFIX = "/kvark"
+ESTIMATES_BAG_S = 60.0    # s of data up to which the estimates bag is written by default (1 kHz, minutes: 200 MB)
 
 
 @dataclass(frozen=True)
 class GroundTruth:
-    """τ_ext (T, n) N·m and wrench (T, 6) at the end-effector origin in the configured axes, or None."""
+    """τ_ext (T, n) N·m and wrench (T, 6) at the end-effector origin in the configured axes (NaN rows: the wrist
+    sensor does not observe the contact, ``wrench_truth``), or None."""
 
     kind: str
     tau_ext: np.ndarray
@@ -93,39 +99,26 @@ def zero_truth(inputs: EstimatorInputs, why: str) -> GroundTruth:
     return GroundTruth(f"zero: {why}", np.zeros(inputs.q.shape), np.zeros((len(inputs), 6)))
 
 
-def trimmed_rows(stamp: np.ndarray, start: float, end: float) -> np.ndarray:
-    """Indices of the samples from ``start`` s after the first to ``end`` s before the last; ValueError if that
-    leaves fewer than two (ConfigError: a user error of the option)."""
-    if start < 0.0 or end < 0.0:
-        raise ConfigError(f"--trim needs two non-negative durations in seconds, got {start} {end}")
-    elapsed = stamp - stamp[0]
-    keep = np.flatnonzero((elapsed >= start) & (elapsed <= elapsed[-1] - end))
-    if len(keep) < 2:
-        raise ConfigError(f"--trim {start} {end} leaves {len(keep)} samples of a {elapsed[-1]:.2f} s recording")
-    return keep
-
-
 def _take(inputs: EstimatorInputs, truth: GroundTruth | None,
           rows: np.ndarray) -> tuple[EstimatorInputs, GroundTruth | None]:
     """The inputs and the ground truth at ``rows``."""
-    kept = EstimatorInputs(inputs.stamp[rows], inputs.q[rows], inputs.qd[rows], inputs.tau_m[rows],
-                           inputs.torque_source, inputs.dropped, inputs.simulated)
+    kept = inputs.take(rows)
     if truth is None:
         return kept, None
     return kept, GroundTruth(truth.kind, truth.tau_ext[rows], None if truth.wrench is None else truth.wrench[rows])
 
 
 def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, inputs: EstimatorInputs,
-                 reference: EstimatorInputs | None, kind: str = "auto") -> GroundTruth | None:
+                 reference: EstimatorInputs | None, kind: str = "auto", bag: str | Path | None = None
+                 ) -> GroundTruth | None:
     """The ground truth ``kind`` (``GROUND_TRUTHS``; ``auto``: the best the data offers, see module docstring) on
-    the inputs' stamps; ``BagError`` when the asked one is not in the data."""
+    the inputs' stamps; ``BagError`` when the asked one is not in the data (naming ``bag``'s topics, if given)."""
     if kind == "zero":
         return zero_truth(inputs, "contact-free recording (--ground-truth zero)")
-    missing = {"topic": run.external_torque is None and "/ground_truth/external_joint_torque",
-               "ft": run.wrench is None and "a wrist wrench topic",
-               "reference": reference is None and "--reference-bag"}
-    if missing.get(kind):
-        raise BagError(f"--ground-truth {kind} needs {missing[kind]}, which this replay does not have")
+    if kind == "reference" and reference is None:
+        raise BagError("--ground-truth reference needs --reference-bag, which this replay does not have")
+    if (kind == "topic" and run.external_torque is None) or (kind == "ft" and run.wrench is None):
+        raise missing_truth(kind, config, bag)
     use_topic, use_ft = kind in ("auto", "topic"), kind in ("auto", "ft")
     wrench = None
     if run.wrench is not None:
@@ -136,6 +129,8 @@ def ground_truth(robot: RobotModel, config: EstimatorConfig, run: RecordedRun, i
         tau = interpolate(inputs.stamp, run.external_torque.stamp, run.external_torque.effort)
         if wrench is None:    # no wrist sensor: the true torque through the same pseudo-inverse (eq. 39)
             wrench = _wrench_of_torque(robot, config, inputs.q, tau)
+        else:                 # the wrist sensor cannot see a push on a link: no true wrench there
+            wrench = sensed_wrench(robot, config.wrench.frame, inputs.q, tau, wrench)
         return GroundTruth("true external joint torque (/ground_truth/external_joint_torque)", tau, wrench)
     if run.wrench is not None and use_ft:
         tau = np.array([robot.sensor_torque(q, run.wrench.frame_id, w) if np.isfinite(w).all()
@@ -239,7 +234,7 @@ def write_estimates(path: Path, run: RecordedRun, inputs: EstimatorInputs, resul
     torque σ (observers with a covariance), contact and collision flag, one topic after the other."""
     frame = "base" if config.wrench.frame == "base" else config.ee_frame
     names = run.joint_names
-    with BagWriter(path, overwrite=True) as bag:
+    with BagWriter(path) as bag:
         write_run_messages(bag, run)
         for result in results:
             prefix = f"{OUTPUT_PREFIX}/{result.name}"
@@ -269,14 +264,18 @@ def bag_fields(inputs: EstimatorInputs, truth: GroundTruth | None, trained: Trai
 
 
 def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path, observers: Sequence[str],
-           reference_bag: Path | None = None, oracle: ResidualPredictor | None = None, write_bag: bool = True,
+           reference_bag: Path | None = None, oracle: ResidualPredictor | None = None, write_bag: bool | None = None,
            plots: bool = True, log=print, truth_kind: str = "auto",
-           trim: tuple[float, float] = (0.0, 0.0), tare_at: float | None = None) -> dict:
-    """Replay ``bag`` through ``observers``; write outputs under ``out``; return metrics.json's content.
+           trim: tuple[float, float] = (0.0, 0.0), tare_at: float | None = None, force: bool = False) -> dict:
+    """Replay ``bag`` through ``observers``; write outputs into ``out``; return metrics.json's content.
 
     ``oracle``: the simulator's true residual (``kvark_ros.sim.plant.OracleResidual``), for the oracle;
-    ``truth_kind``: one of ``GROUND_TRUTHS``; ``trim``: seconds dropped at the start and at the end.
+    ``truth_kind``: one of ``GROUND_TRUTHS``; ``trim``: seconds dropped at the start and at the end;
+    ``write_bag``: the estimates bag always (True), never (False) or for up to ``ESTIMATES_BAG_S`` s of data (None).
+    ``out`` is built beside itself and swapped in whole (``staged_directory``: an existing non-empty ``out`` only
+    with ``force``), so no file of an earlier replay stays.
     """
+    check_output(out, force)
     started = time.perf_counter()
     # Built before decoding: a model or oracle that cannot serve an observer fails first, and what a process builds
     # once (the compiled kernels from numba's cache, the message types) is outside the replay's own time.
@@ -296,7 +295,7 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
     if reference_bag is not None:
         reference = read_inputs(reference_bag, config)[1]
     robot = RobotModel.from_config(config, trained.augmentation)
-    truth = ground_truth(robot, config, run, inputs, reference, truth_kind)
+    truth = ground_truth(robot, config, run, inputs, reference, truth_kind, bag)
     if trim != (0.0, 0.0):     # after the ground truth: a reference run is aligned from the recordings' starts
         inputs, truth = _take(inputs, truth, trimmed_rows(inputs.stamp, *trim))
     decode_seconds = time.perf_counter() - started
@@ -311,13 +310,16 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
     metrics = {"bag": str(bag), **bag_fields(inputs, truth, trained, warnings, decode_seconds, trim),
                "start_up_seconds": round(start_up, 3),
                "observers": {r.name: observer_metrics(r, truth, inputs.stamp) for r in results}}
-    out.mkdir(parents=True, exist_ok=True)
-    if write_bag:
-        write_estimates(out / "estimates", run, inputs, results, config)
-    write_text_atomically(out / "metrics.json", json.dumps(metrics, indent=2))
-    if plots:
-        from kvark_ros.tools.report import write_replay_report
-        write_replay_report(out, metrics, robot, inputs, truth, results)
+    if write_bag is None and duration > ESTIMATES_BAG_S:
+        log(f"[replay] estimates bag not written: {duration:.0f} s of data, over {ESTIMATES_BAG_S:.0f} s (it would "
+            f"hold every observer's outputs at every sample); pass --estimates-bag to write it")
+    with staged_directory(out, force) as staging:
+        if write_bag or (write_bag is None and duration <= ESTIMATES_BAG_S):
+            write_estimates(staging / "estimates", run, inputs, results, config)
+        write_text_atomically(staging / "metrics.json", json.dumps(metrics, indent=2))
+        if plots:
+            from kvark_ros.tools.report import write_replay_report
+            write_replay_report(staging, metrics, robot, inputs, truth, results)
     total = time.perf_counter() - started
     log(f"[replay] {len(observers)} observer(s) over {duration:.1f} s of data in {total:.2f} s "
         f"({duration / total:.0f} × real time; reading {decode_seconds:.2f} s), after {start_up:.2f} s of start-up "
@@ -329,8 +331,9 @@ def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "replay", help="run a bag through observers; write an output bag, metrics, plots and a report",
         description="Replay a ROS 2 bag through one or more observers with the same Estimator the ROS node "
-                    "uses. Writes the bag DIR/estimates/ (estimates.mcap: inputs plus /kvark/<observer>/... outputs), "
-                    "DIR/metrics.json, DIR/report.md and plots.")
+                    "uses. Writes the bag DIR/estimates/ (estimates.mcap: inputs plus /kvark/<observer>/... outputs; "
+                    f"by default for up to {ESTIMATES_BAG_S:.0f} s of data), DIR/metrics.json, DIR/report.md and "
+                    "plots. DIR is written whole: an existing non-empty DIR is replaced only with --force.")
     parser.add_argument("--config", required=True, help="estimator config YAML")
     parser.add_argument("--model", help="model directory (default: residual_model.model_dir of the config)")
     parser.add_argument("--bag", required=True, help="bag to replay")
@@ -342,19 +345,25 @@ def add_parser(subparsers: SubParsers) -> None:
                         help="true external torque: auto (default: the bag's /ground_truth topic, else its wrist "
                              "F/T, else --reference-bag), zero (the robot touched nothing: every estimate is "
                              "error), or one of topic, ft, reference (an error if the data lack it)")
-    parser.add_argument("--trim", nargs=2, type=float, default=(0.0, 0.0), metavar=("START", "END"),
-                        help="drop the first START and the last END seconds of the bag (a start-up, a stop)")
+    add_trim_option(parser)
     parser.add_argument("--tare-at", type=float, metavar="SECONDS",
                         help="start a tare (the node's ~/tare: average τ_ext over tare.duration s at rest, then "
                              "subtract it) at the first sample at rest from SECONDS after the bag's start")
-    parser.add_argument("--out", required=True, help="output directory")
-    parser.add_argument("--no-bag", action="store_true", help="skip writing the estimates bag")
+    parser.add_argument("--out", required=True, help="output directory (new or empty; see --force)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace an existing --out whole (once the new output is complete)")
+    estimates = parser.add_mutually_exclusive_group()
+    estimates.add_argument("--estimates-bag", action="store_true", dest="estimates_bag", default=None,
+                           help=f"write the estimates bag also for more than {ESTIMATES_BAG_S:.0f} s of data")
+    estimates.add_argument("--no-bag", action="store_false", dest="estimates_bag",
+                           help="never write the estimates bag")
     parser.add_argument("--no-plots", action="store_true",
                         help="skip the plots and report.md (metrics.json only; matplotlib is not loaded)")
     parser.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output(args.out, args.force)
     config = load_config(args.config)
     model_dir = args.model or config.model_dir
     trained = load_model(model_dir, config.joint_names, urdf_sha256(config.urdf))
@@ -368,8 +377,8 @@ def run(args: argparse.Namespace) -> int:
         print("[replay] oracle skipped: it runs on the plant's own rigid body and friction, and this "
               "model is augmented", flush=True)
     replay(config, trained, Path(args.bag), Path(args.out), observers,
-           Path(args.reference_bag) if args.reference_bag else None, oracle, write_bag=not args.no_bag,
+           Path(args.reference_bag) if args.reference_bag else None, oracle, write_bag=args.estimates_bag,
            log=lambda line: print(line, flush=True), truth_kind=args.ground_truth, trim=tuple(args.trim),
-           tare_at=args.tare_at, plots=not args.no_plots)
+           tare_at=args.tare_at, plots=not args.no_plots, force=args.force)
     print(f"[replay] wrote {args.out}/metrics.json{'' if args.no_plots else ' and report.md'}", flush=True)
     return 0

@@ -75,7 +75,7 @@ def _estimates(stamp: np.ndarray, truth: np.ndarray) -> dict[str, np.ndarray]:
             "momentum": truth + 0.3 * rng.standard_normal(truth.shape)}
 
 
-def test_time_histories_draw_the_truth_on_top_of_kvark_on_top_of_the_baselines(tmp_path, saved):
+def test_time_histories_draw_the_truth_on_top_of_the_best_on_top_of_kvark_on_top_of_the_baselines(tmp_path, saved):
     stamp = np.arange(int(8 * RATE)) / RATE
     contacts = [(1.0 + 1.5 * i, 1.6 + 1.5 * i, i % 3, 3.0) for i in range(5)]      # five onsets
     truth = _truth(stamp, contacts)
@@ -93,13 +93,13 @@ def test_time_histories_draw_the_truth_on_top_of_kvark_on_top_of_the_baselines(t
         lines = {line.get_label(): line for line in ax.get_lines()}
         truth_z, kvark_z = lines["ground truth"].get_zorder(), lines["kvark"].get_zorder()
         best_z, other_z = lines["kf (lowest RMSE)"].get_zorder(), lines["momentum"].get_zorder()
-        assert truth_z > kvark_z > best_z > other_z
-        assert lines["kvark"].get_linewidth() > lines["kf (lowest RMSE)"].get_linewidth() \
+        assert truth_z > best_z > kvark_z > other_z
+        assert lines["kf (lowest RMSE)"].get_linewidth() > lines["kvark"].get_linewidth() \
             > lines["momentum"].get_linewidth()
         assert len(ax.collections) == 1            # the 95 % band of kvark only: a baseline gets none
     legend, = fig.legends
     assert [text.get_text() for text in legend.get_texts()] == ["ground truth", "kvark", "kf (lowest RMSE)",
-                                                                 "momentum"]
+                                                                 "momentum", "95 % band"]
     texts = [text for ax in fig.axes for text in (ax.get_title(), ax.get_title(loc="left"), ax.get_xlabel(),
                                                    ax.get_ylabel())]
     assert not [text for text in texts if INDEX_LABEL.match(text.strip())]
@@ -123,7 +123,7 @@ def test_error_figure_shows_estimate_minus_truth_about_zero(tmp_path, saved):
     for j, ax in enumerate(panels):
         lines = {line.get_label(): line for line in ax.get_lines()}
         np.testing.assert_allclose(lines["kvark"].get_ydata(), estimates["kvark"][:, j] - truth[:, j])
-        assert lines["kvark"].get_zorder() > lines["kf (lowest RMSE)"].get_zorder() > lines["momentum"].get_zorder()
+        assert lines["kf (lowest RMSE)"].get_zorder() > lines["kvark"].get_zorder() > lines["momentum"].get_zorder()
     assert len(_insets(panels[1])) == 1 and not _insets(panels[0]) and not _insets(panels[2])
 
 
@@ -132,7 +132,7 @@ def _replay_objects(truth_tau: np.ndarray | None, stamp: np.ndarray) -> tuple:
     estimates = _estimates(stamp, truth_tau if truth_tau is not None else np.zeros((len(stamp), len(NAMES))))
     valid = np.ones(len(stamp), dtype=bool)
     results = [SimpleNamespace(name=name, valid=valid, tau_ext=values, tau_std=None,
-                               wrench=np.zeros((len(stamp), 6))) for name, values in estimates.items()]
+                               wrench=np.zeros((len(stamp), 6)), wrench_std=None) for name, values in estimates.items()]
     rmse = {"kvark": 0.2, "kf": 0.1, "momentum": 0.3}
     observers = {name: ({"joint_rmse_mean": rmse[name]} if truth_tau is not None else {}) for name in estimates}
     metrics = {"bag": "synthetic", "ground_truth": "none" if truth_tau is None else "topic", "samples": len(stamp),
@@ -154,7 +154,7 @@ def test_replay_report_draws_the_error_figure_only_with_ground_truth(tmp_path, s
     assert [path.name for path in figures] == ["joint_torques.png", "wrench.png", "joint_errors.png",
                                                "joint_rmse.png"]
     text = (with_truth / "report.md").read_text()
-    assert "(joint_errors.png)" in text and "1 contact onset(s)" in text and "kf, red" in text
+    assert "(joint_errors.png)" in text and "1 contact onset(s)" in text and "lowest joint RMSE, kf," in text
 
     saved.clear()
     metrics, robot, inputs, gt, results = _replay_objects(None, stamp)

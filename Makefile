@@ -14,7 +14,7 @@ export OMP_NUM_THREADS := 1
 export OPENBLAS_NUM_THREADS := 1
 export MKL_NUM_THREADS := 1
 
-.PHONY: demo test test-newest smoke-newest newest-venv lock versions bench bags model benchmark reliability clean \
+.PHONY: demo docs docs-check test test-newest smoke-newest newest-venv lock versions bench bags model benchmark reliability clean \
   generated
 
 KVARK   := $(BIN)/kvark
@@ -37,27 +37,28 @@ $(STAMP): setup.py setup.cfg $(LOCK)
 ## on a bag over loopback DDS, a reload mid-run, and print how it matches replay
 TRAIN_BAGS := bags/panda_excitation_1 bags/panda_excitation_2
 demo: $(STAMP)
-	$(KVARK) diagnose --config $(CONFIG) --bags $(TRAIN_BAGS) --out $(RESULTS)/diagnosis
+	$(KVARK) diagnose --config $(CONFIG) --bags $(TRAIN_BAGS) --out $(RESULTS)/diagnosis --force
 	$(KVARK) train --config $(CONFIG) --bags $(TRAIN_BAGS) --augmentation $(RESULTS)/diagnosis/augmentation.yaml \
-	  --out $(RESULTS)/model
+	  --out $(RESULTS)/model --force
 	for scene in $(SCENES); do \
 	  $(KVARK) replay --config $(CONFIG) --model $(RESULTS)/model --bag bags/panda_$$scene \
-	    --observers all --plant $(PLANT) --out $(RESULTS)/$$scene || exit 1; \
+	    --observers all --plant $(PLANT) --out $(RESULTS)/$$scene --force || exit 1; \
 	done
-	@echo "demo results: $(RESULTS)/diagnosis/report.md (model gap), $(RESULTS)/<scenario>/report.md, metrics.json, plots; model in $(RESULTS)/model"
 	$(KVARK) node-check --config $(CONFIG) --model $(RESULTS)/model --bag bags/panda_contact --reload-at 2.5
+	@echo "demo: the model gap in $(RESULTS)/diagnosis/report.md, the model in $(RESULTS)/model, each scene's report and plots in $(RESULTS)/<scene>/"
+	@$(BIN)/python scripts/demo_table.py $(RESULTS)
 
 ## bags: regenerate the committed sample bags (simulated Panda)
 bags: $(STAMP)
-	$(KVARK) simulate --robot panda --scenario excitation --seed 1 --duration 8 --out bags/panda_excitation_1 --overwrite
-	$(KVARK) simulate --robot panda --scenario excitation --seed 2 --duration 8 --out bags/panda_excitation_2 --overwrite
+	$(KVARK) simulate --robot panda --scenario excitation --seed 1 --duration 8 --out bags/panda_excitation_1 --force
+	$(KVARK) simulate --robot panda --scenario excitation --seed 2 --duration 8 --out bags/panda_excitation_2 --force
 	for scene in $(SCENES); do \
-	  $(KVARK) simulate --robot panda --scenario $$scene --seed 3 --duration 5 --out bags/panda_$$scene --overwrite || exit 1; \
+	  $(KVARK) simulate --robot panda --scenario $$scene --seed 3 --duration 5 --out bags/panda_$$scene --force || exit 1; \
 	done
 
 ## model: retrain the committed model from the committed bags
 model: $(STAMP)
-	$(KVARK) train --config $(CONFIG) --bags $(TRAIN_BAGS) --out models/panda
+	$(KVARK) train --config $(CONFIG) --bags $(TRAIN_BAGS) --out models/panda --force
 
 ## reliability: the reliability figures: a 10^6-step soak with faults and the property tests
 reliability: $(STAMP)
@@ -66,18 +67,28 @@ reliability: $(STAMP)
 
 ## benchmark: the full simulated comparison of every observer (see README, Results)
 benchmark: $(STAMP)
-	$(KVARK) benchmark --robot panda --out $(RESULTS)/benchmark
+	$(KVARK) benchmark --robot panda --out $(RESULTS)/benchmark --force
 
 ## test: the whole test suite, on the locked versions
 test: $(STAMP)
 	@$(BIN)/python test/versions.py
 	$(BIN)/python -m pytest -q
 
+## docs: re-measure every figure of docs/results.md (and README's results at a glance, docs/walkthrough.md's
+## tables, README's picture) by running the commands that produce them (about 15 min on 2 cores)
+docs: $(STAMP)
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/python scripts/results_doc.py
+
+## docs-check: run every `bash` block of README.md and docs/*.md as written, after the quick start, in a scratch
+## copy of the project (CI runs it)
+docs-check: $(STAMP)
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/python scripts/check_docs_commands.py
+
 ## generated: after a change to the key table (kvark_ros/core/config_schema.py), write what it generates: the typed
 ## settings (kvark_ros/core/settings.py), the key comments of config/*.yaml (values, notes and prose kept) and
-## README's table of keys
+## the table of keys in docs/configuration.md
 generated: $(STAMP)
-	$(BIN)/python -m kvark_ros.core.config_sources --write-settings --write-configs --write-readme README.md
+	$(BIN)/python -m kvark_ros.core.config_sources --write-settings --write-configs --write-keys-doc docs/configuration.md
 
 ## versions: the interpreter and the installed versions the figures depend on
 versions: $(STAMP)

@@ -1,0 +1,306 @@
+"""Measure the figures of docs/ by running the commands that produce them, and write them into the documents.
+
+Each section runs one command, keeps the figures it needs in ``docs/results.json`` (with the command, the date,
+the wall time, the machine's cores and load), and is written into its ``<!-- generated: NAME -->`` section of a
+document together with that command and date; README's results-at-a-glance table is read off the same file. No
+figure in docs/ is copied by hand.
+
+    python scripts/results_doc.py                      # every section (about 10 min on 2 cores)
+    python scripts/results_doc.py --sections real-panda,node
+    python scripts/results_doc.py --render             # rewrite the documents from docs/results.json only
+
+``make docs`` runs it with the project's .venv on PATH.
+"""
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from doc_blocks import ROOT, replace_section, scratch_copy, shell_blocks
+
+DATA = ROOT / "docs" / "results.json"
+REAL_PANDA = "../shared/real/panda_gaz2019_trajectory1"
+SCENES = ("payload", "contact", "collision")
+PICTURE = ROOT / "docs" / "images" / "contact_joint_torques.png"
+
+
+@dataclass(frozen=True)
+class Section:
+    """A measured section: the shell command (``{out}``: a fresh output folder), the document it is written
+    into, what to keep of the outputs, and how to render the kept figures."""
+
+    command: str
+    document: str
+    keep: Callable[[Path, str], dict]
+    render: Callable[[dict], str]
+
+
+def read_json(path: Path) -> dict:
+    return json.loads(path.read_text())
+
+
+def last_json_line(stdout: str) -> dict:
+    return json.loads([line for line in stdout.splitlines() if line.startswith("{")][-1])
+
+
+def number(value: float | None, digits: int = 3) -> str:
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
+def observer_figures(metrics: dict) -> dict:
+    """The figures a table shows of one observer's metrics (replay's ``metrics.json`` entry)."""
+    per_joint = metrics.get("coverage95_per_joint")
+    return {"joint_rmse": metrics.get("joint_rmse_mean"), "force_rmse": metrics.get("force_rmse_mean"),
+            "coverage95": metrics.get("coverage95"),
+            "coverage95_min_joint": None if per_joint is None else min(per_joint),
+            "vector_coverage95": metrics.get("vector_coverage95"),
+            "any_joint_miss": metrics.get("any_joint_miss_share"),
+            "false_contact": (metrics.get("contact") or {}).get("false_contact_share")}
+
+
+def keep_scenes(metrics_by_scene: dict[str, dict]) -> dict:
+    return {scene: {name: observer_figures(figures) for name, figures in metrics["observers"].items()}
+            for scene, metrics in metrics_by_scene.items()}
+
+
+def scene_table(scenes: dict) -> str:
+    """Observers × scenes: joint RMSE (N·m) / coverage95 (lowest joint's in brackets)."""
+    names = list(next(iter(scenes.values())))
+    lines = ["| observer | " + " | ".join(scenes) + " |", "|---|" + "---|" * len(scenes)]
+    for name in names:
+        cells = []
+        for scene in scenes.values():
+            figures = scene.get(name)
+            if figures is None:
+                cells.append("–")
+                continue
+            cell = number(figures["joint_rmse"])
+            if figures["coverage95"] is not None:
+                cell += f" / {number(figures['coverage95'], 2)} ({number(figures['coverage95_min_joint'], 2)})"
+            cells.append(cell)
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def keep_demo(out: Path, stdout: str) -> dict:
+    """The demo's figures; its contact run's joint-torque plot becomes README's picture."""
+    PICTURE.parent.mkdir(exist_ok=True)
+    shutil.copyfile(out / "contact" / "joint_torques.png", PICTURE)
+    diagnosis = read_json(out / "diagnosis" / "diagnosis.json")
+    return {"scenes": keep_scenes({scene: read_json(out / scene / "metrics.json") for scene in SCENES}),
+            "effects": [effect["name"] for effect in diagnosis["effects"]],
+            "gap": [diagnosis["gap_before"]["joint_rmse_mean"], diagnosis["gap_after"]["joint_rmse_mean"]],
+            "node": [line for line in stdout.splitlines() if line.startswith("[node-check]")]}
+
+
+def render_demo(data: dict) -> str:
+    effects = ", ".join(data["effects"])
+    return (f"Diagnosis of the two excitation bags: {effects}; held-out gap {data['gap'][0]:.3f} → "
+            f"{data['gap'][1]:.3f} N·m. Joint RMSE (N·m) / coverage95 (the lowest joint's):\n\n"
+            + scene_table(data["scenes"]) + "\n\nThe node check it ends with:\n\n```text\n"
+            + "\n".join(data["node"]) + "\n```")
+
+
+def keep_quick(out: Path, stdout: str) -> dict:
+    return {"scenes": keep_scenes(read_json(out / "results.json")["scenarios"])}
+
+
+def render_quick(data: dict) -> str:
+    return "Joint RMSE (N·m) / coverage95 (the lowest joint's):\n\n" + scene_table(data["scenes"])
+
+
+def render_simulated(robot: str) -> Callable[[dict], str]:
+    """The rendering of a robot's realistic-plant benchmark."""
+    return lambda data: f"**{robot}**. " + render_quick(data)
+
+
+def keep_real(out: Path, stdout: str) -> dict:
+    results = read_json(out / "results.json")
+    return {"rate_hz": results["rate_hz"], "samples": results["samples"], "effects": results["augmentation"]["effects"],
+            "gap": [results["augmentation"]["gap_before"], results["augmentation"]["gap_after"]],
+            "nominal": {name: observer_figures(m) for name, m in results["nominal"].items()},
+            "augmented": {name: observer_figures(m) for name, m in results["augmented"].items()}}
+
+
+def render_real(data: dict) -> str:
+    lines = [f"Trained and diagnosed on the first {data['samples']['train']} samples, held out "
+             f"{data['samples']['held_out']} at about {data['rate_hz']:.0f} Hz with a true τ_ext of zero. Diagnosis: "
+             f"{', '.join(data['effects'])}; held-out gap {data['gap'][0]:.2f} → {data['gap'][1]:.2f} N·m. "
+             "Nominal model / augmented model:", "",
+             "| observer | false τ_ext (N·m) | false force (N) | coverage95 of 0 | vector coverage95 "
+             "| any-joint miss | false contact |", "|---|---|---|---|---|---|---|"]
+    for name, nominal in data["nominal"].items():
+        augmented = data["augmented"][name]
+        cells = [f"{number(nominal[key], digits)} / {number(augmented[key], digits)}"
+                 if nominal[key] is not None else "–"
+                 for key, digits in (("joint_rmse", 3), ("force_rmse", 2), ("coverage95", 3),
+                                     ("vector_coverage95", 3), ("any_joint_miss", 3), ("false_contact", 3))]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def keep_node(out: Path, stdout: str) -> dict:
+    figures = read_json(out / "node.json")
+    return {key: figures[key] for key in ("estimates_matched", "estimates_expected", "max_abs_difference",
+                                          "latency_ms_p50", "latency_ms_p99", "node_cpu_cores", "reload_at")}
+
+
+def render_node(data: dict) -> str:
+    return ("| estimates equal to replay | max abs Δτ (N·m) | latency p50 / p99 (ms) | node CPU (core) |\n"
+            "|---|---|---|---|\n"
+            f"| {data['estimates_matched']} of {data['estimates_expected']} | {data['max_abs_difference']:.1e} | "
+            f"{data['latency_ms_p50']:.2f} / {data['latency_ms_p99']:.2f} | {data['node_cpu_cores']:.2f} |")
+
+
+def keep_bench(out: Path, stdout: str) -> dict:
+    return last_json_line(stdout)["observers"]
+
+
+def render_bench(data: dict) -> str:
+    lines = ["| observer | p50 µs | p99 µs |", "|---|---|---|"]
+    lines += [f"| {name} | {figures['p50_us']:.1f} | {figures['p99_us']:.1f} |" for name, figures in data.items()]
+    return "\n".join(lines)
+
+
+def keep_soak(out: Path, stdout: str) -> dict:
+    return last_json_line(stdout)
+
+
+def render_soak(data: dict) -> str:
+    return "```json\n" + json.dumps(data) + "\n```"
+
+
+def keep_walkthrough(out: Path, stdout: str) -> dict:
+    folder = out / "walkthrough" / ROOT.name
+    diagnosis = read_json(folder / "results" / "myur5_diagnosis" / "diagnosis.json")
+    replay = read_json(folder / "results" / "myur5_replay" / "metrics.json")
+    return {"effects": [{"name": e["name"], "joints": e["joints"]} for e in diagnosis["effects"]],
+            "warnings": diagnosis["warnings"],
+            "gap": [diagnosis["gap_before"]["joint_rmse_mean"], diagnosis["gap_after"]["joint_rmse_mean"]],
+            "observers": {name: observer_figures(m) for name, m in replay["observers"].items()}}
+
+
+def render_walkthrough(data: dict) -> str:
+    lines = [f"Diagnosis: {', '.join(effect['name'] for effect in data['effects'])}; held-out gap "
+             f"{data['gap'][0]:.2f} → {data['gap'][1]:.2f} N·m; warnings: {len(data['warnings']) or 'none'}.", "",
+             "Replay of the second log (true τ_ext = 0): false τ_ext (N·m) / coverage95 of zero:", "",
+             "| observer | false τ_ext | coverage95 of 0 |", "|---|---|---|"]
+    lines += [f"| {name} | {number(f['joint_rmse'])} | {number(f['coverage95'], 2)} |"
+              for name, f in data["observers"].items()]
+    return "\n".join(lines)
+
+
+WALKTHROUGH = "docs/walkthrough.md"
+SECTIONS = {
+    "demo": Section("make demo RESULTS={out}", "docs/results.md", keep_demo, render_demo),
+    "simulated-panda": Section("kvark benchmark --robot panda --out {out}/benchmark", "docs/results.md",
+                               keep_quick, render_simulated("Panda")),
+    "simulated-ur5": Section("kvark benchmark --robot ur5 --out {out}/benchmark", "docs/results.md",
+                             keep_quick, render_simulated("UR5")),
+    "simulated-quick": Section("kvark benchmark --robot panda --quick --out {out}/benchmark", "docs/results.md",
+                               keep_quick, render_quick),
+    "real-panda": Section(f"kvark benchmark --real {REAL_PANDA} --out {{out}}/real", "docs/results.md",
+                          keep_real, render_real),
+    "node": Section("kvark node-check --config config/panda.yaml --bag bags/panda_contact --reload-at 2.5 "
+                    "--json {out}/node.json", "docs/results.md", keep_node, render_node),
+    "latency": Section("kvark bench --robot panda --observer all", "docs/results.md", keep_bench, render_bench),
+    "soak": Section("kvark soak --steps 1000000", "docs/results.md", keep_soak, render_soak),
+    "walkthrough": Section(f"the commands of {WALKTHROUGH}, in a copy of the project", WALKTHROUGH,
+                           keep_walkthrough, render_walkthrough),
+}
+
+
+def run_walkthrough(out: Path) -> subprocess.CompletedProcess:
+    copy = scratch_copy(out / "walkthrough")
+    script = "set -euo pipefail\n" + "\n".join(block.text for block in shell_blocks(WALKTHROUGH) if block.kind == "run")
+    return subprocess.run(["bash", "-c", script], cwd=copy, text=True, capture_output=True)
+
+
+def measure(name: str, section: Section) -> dict:
+    """Run ``section``'s command in a fresh folder; what it keeps, with the command, date, time and load."""
+    with tempfile.TemporaryDirectory(prefix=f"kvark-{name}-") as temporary:
+        out, load = Path(temporary), os.getloadavg()[0]
+        started = time.monotonic()
+        print(f"[docs] {name}: {section.command}", flush=True)
+        if name == "walkthrough":
+            result = run_walkthrough(out)
+        else:
+            result = subprocess.run(section.command.format(out=out), shell=True, cwd=ROOT, text=True,
+                                    stdout=subprocess.PIPE, stderr=None)
+        if result.returncode != 0:
+            sys.stdout.write(result.stdout or "")
+            raise SystemExit(f"[docs] {name}: the command failed (exit {result.returncode})")
+        seconds = time.monotonic() - started
+        figures = section.keep(out, result.stdout)
+    return {"command": section.command.replace("{out}/", "DIR/").replace("{out}", "DIR"),
+            "date": datetime.date.today().isoformat(), "seconds": round(seconds),
+            "cores": os.cpu_count(), "load": round(load, 1), "figures": figures}
+
+
+def provenance(record: dict) -> str:
+    return (f"Produced by `{record['command']}` on {record['date']} in {record['seconds']} s "
+            f"({record['cores']} cores, load average {record['load']} at the start).")
+
+
+def glance_table(records: dict) -> str:
+    """README's results at a glance, from the recorded sections."""
+    rows = ["| where | kvark | best other observer | kf | what |", "|---|---|---|---|---|"]
+    real = records.get("real-panda")
+    if real:
+        augmented = real["figures"]["augmented"]
+        best = min((n for n in augmented if n != "kvark"), key=lambda n: augmented[n]["joint_rmse"])
+        rows.append(f"| real Panda, held out (docs/results.md) | {augmented['kvark']['joint_rmse']:.3f} | {best} "
+                    f"{augmented[best]['joint_rmse']:.3f} | {augmented['kf']['joint_rmse']:.3f} | false τ_ext, N·m |")
+    for key, label in (("demo", "simulated Panda, `make demo`"), ("simulated-quick", "simulated Panda, quick benchmark")):
+        if key in records:
+            for scene, observers in records[key]["figures"]["scenes"].items():
+                best = min((n for n in observers if n not in ("kvark", "oracle")),
+                           key=lambda n: observers[n]["joint_rmse"])
+                rows.append(f"| {label}, {scene} | {observers['kvark']['joint_rmse']:.3f} | {best} "
+                            f"{observers[best]['joint_rmse']:.3f} | {observers['kf']['joint_rmse']:.3f} "
+                            f"| joint RMSE, N·m |")
+    dates = sorted({record["date"] for record in records.values()})
+    return "\n".join(rows) + f"\n\nFrom `docs/results.json` (`make docs`, {dates[0]} to {dates[-1]})."
+
+
+def render(records: dict) -> None:
+    """Write every recorded section into its document, and README's glance table."""
+    documents: dict[str, str] = {}
+    for name, record in records.items():
+        section = SECTIONS[name]
+        text = documents.get(section.document) or (ROOT / section.document).read_text()
+        documents[section.document] = replace_section(text, name, provenance(record) + "\n\n"
+                                                      + section.render(record["figures"]))
+    documents["README.md"] = replace_section((ROOT / "README.md").read_text(), "glance", glance_table(records))
+    for document, text in documents.items():
+        (ROOT / document).write_text(text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sections", default=",".join(SECTIONS), help=f"comma-separated: {', '.join(SECTIONS)}")
+    parser.add_argument("--render", action="store_true", help="only rewrite the documents from docs/results.json")
+    args = parser.parse_args(argv)
+    records = read_json(DATA) if DATA.exists() else {}
+    if not args.render:
+        for name in args.sections.split(","):
+            if name not in SECTIONS:
+                parser.error(f"unknown section {name!r}; choose from {', '.join(SECTIONS)}")
+            records[name] = measure(name, SECTIONS[name])
+            DATA.write_text(json.dumps(records, indent=1, ensure_ascii=False) + "\n")
+    render({name: records[name] for name in SECTIONS if name in records})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,7 +1,7 @@
 """What the key table generates (``config_schema.KEYS``): the typed settings module, the key comments of config
-files and README's table of keys. ``make generated`` runs this module after a change to the table::
+files and docs/configuration.md's table of keys. ``make generated`` runs this module after a change to the table::
 
-    python -m kvark_ros.core.config_sources --write-settings --write-configs --write-readme README.md
+    python -m kvark_ros.core.config_sources --write-settings --write-configs --write-keys-doc docs/configuration.md
 
 The tests compare each generated file with what this module makes now and name the command when one is stale.
 ``kvark init`` writes its configs through ``config_text`` too.
@@ -263,11 +263,11 @@ def _write(path: Path, text: str) -> None:
         print(f"{path}: up to date")
 
 
-def readme_with_keys_table(text: str) -> str:
-    """``text`` (the README) with its table of keys (the lines from the table's header row) made ``keys_table()``."""
+def document_with_keys_table(text: str) -> str:
+    """``text`` (docs/configuration.md) with its table of keys (the lines from the table's header row) made ``keys_table()``."""
     header = keys_table().splitlines()[0]
     if header not in text:
-        raise ValueError(f"the README has no table of keys (a line {header!r})")
+        raise ValueError(f"the document has no table of keys (a line {header!r})")
     start = text.index(header)
     end = text.find("\n\n", start)
     end = len(text.rstrip("\n")) if end < 0 else end
@@ -282,18 +282,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--write-configs", nargs="*", metavar="FILE",
                         help="rewrite the key comments of config files, keeping their values, notes and prose "
                              f"(default: {CONFIG_DIR}/*.yaml)")
-    parser.add_argument("--write-readme", type=Path, metavar="README",
-                        help="replace the table of keys in this README.md by `kvark config --keys`")
+    parser.add_argument("--write-keys-doc", type=Path, metavar="MARKDOWN",
+                        help="replace the table of keys in this document (docs/configuration.md) by "
+                             "`kvark config --keys`")
     args = parser.parse_args(argv)
-    if not args.write_settings and args.write_configs is None and args.write_readme is None:
-        parser.error("give --write-settings, --write-configs and/or --write-readme")
+    if not args.write_settings and args.write_configs is None and args.write_keys_doc is None:
+        parser.error("give --write-settings, --write-configs and/or --write-keys-doc")
     if args.write_settings:
         _write(SETTINGS_PATH, settings_source())
     if args.write_configs is not None:
         for path in map(Path, args.write_configs or sorted(CONFIG_DIR.glob("*.yaml"))):
             _write(path, regenerated_config_text(path.read_text(), str(path)))
-    if args.write_readme is not None:
-        _write(args.write_readme, readme_with_keys_table(args.write_readme.read_text()))
+    if args.write_keys_doc is not None:
+        _write(args.write_keys_doc, document_with_keys_table(args.write_keys_doc.read_text()))
     return 0
 
 

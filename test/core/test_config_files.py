@@ -10,7 +10,7 @@ import yaml
 
 from kvark_ros.core.config import ConfigError, EstimatorConfig, FilterSettings, load_config
 from kvark_ros.core.config_schema import KEYS, KEYS_BY_NAME, keys_table
-from kvark_ros.core.config_sources import (comment_lines, describe, parse_config_text, readme_with_keys_table,
+from kvark_ros.core.config_sources import (comment_lines, describe, parse_config_text, document_with_keys_table,
                                            regenerated_config_text)
 from kvark_ros.core.settings import SETTINGS_BY_GROUP
 
@@ -150,12 +150,12 @@ def test_regenerating_refuses_a_file_with_an_unknown_key():
         regenerated_config_text(text)
 
 
-def test_the_readme_table_of_keys_is_replaced_whole_and_a_readme_without_one_is_refused():
-    """``make generated`` rewrites README's table of keys from the table, leaving the text around it."""
+def test_the_documented_table_of_keys_is_replaced_whole_and_a_document_without_one_is_refused():
+    """``make generated`` rewrites docs/configuration.md's table of keys from the table, leaving the text around it."""
     stale = ("intro\n\n| key | allowed | default | run time | meaning |\n|---|---|---|---|---|\n"
              "| `old` | x | y | no | z |\n\nafter\n")
-    fresh = readme_with_keys_table(stale)
+    fresh = document_with_keys_table(stale)
     assert fresh == "intro\n\n" + keys_table() + "\n\nafter\n"
-    assert readme_with_keys_table(fresh) == fresh
+    assert document_with_keys_table(fresh) == fresh
     with pytest.raises(ValueError, match="no table of keys"):
-        readme_with_keys_table("intro\n")
+        document_with_keys_table("intro\n")

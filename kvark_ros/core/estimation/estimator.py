@@ -249,7 +249,7 @@ class Estimator:
 
     def start_tare(self) -> None:
         """Average τ̂_ext over ``tare.duration`` s at rest, then subtract it (``kvark_ros.core.estimation.tare``);
-        ``TareError`` says why it cannot start (no sample yet, moving). Progress: ``tare.state``."""
+        ``TareError`` says why it cannot start (no sample yet, moving). Progress: ``Estimator.tare.state``."""
         self.tare.start()
 
     def clear_tare(self) -> None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import re
 import shutil
+import textwrap
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 DOCUMENTS = ("README.md", *sorted(str(path.relative_to(ROOT)) for path in (ROOT / "docs").glob("*.md")))
 LONG_RUNNING_S = 20
-FENCE = re.compile(r"^```([^\n`]*)\n(.*?)^```", re.MULTILINE | re.DOTALL)
+FENCE = re.compile(r"^( *)```([^\n`]*)\n(.*?)^\1```", re.MULTILINE | re.DOTALL)     # a block may be indented
 SECTION = re.compile(r"(<!-- generated: (?P<name>[a-z-]+) -->\n)(?P<body>.*?)(<!-- end: (?P=name) -->)", re.DOTALL)
 
 
@@ -45,13 +46,14 @@ def shell_blocks(document: str, root: Path = ROOT) -> list[Block]:
     text = (root / document).read_text()
     blocks = []
     for match in FENCE.finditer(text):
-        words = match.group(1).split()
+        words = match.group(2).split()
         if not words or words[0] != "bash":
             continue
         kind = words[1] if len(words) > 1 else "run"
         if kind not in ("run", "long-running", "ros-install", "quick-start"):
             raise ValueError(f"{document}: unknown shell block kind {kind!r} (see scripts/doc_blocks.py)")
-        blocks.append(Block(document, text.count("\n", 0, match.start()) + 1, kind, match.group(2)))
+        body = textwrap.dedent(match.group(3))
+        blocks.append(Block(document, text.count("\n", 0, match.start()) + 1, kind, body))
     return blocks
 
 

@@ -8,7 +8,7 @@ import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterable, Iterator
 
 import yaml
 
@@ -57,16 +57,25 @@ def _occupied(path: Path) -> bool:
     return path.exists() and path.stat().st_size > 0
 
 
-def check_output(path: str | os.PathLike, force: bool) -> None:
+def check_output(path: str | os.PathLike, force: bool, inputs: Iterable[str | os.PathLike | None] = ()) -> None:
     """The output rule of every command that writes: ``path`` may be new or an empty directory (or file); anything
-    else is replaced only with ``force``. Called before the long work, so a refusal costs nothing."""
+    else is replaced only with ``force``, and never when it holds the current directory or one of the command's
+    ``inputs`` (bags, models, logs: the swap would delete them). Called before the long work, so a refusal costs
+    nothing."""
     if not force and _occupied(Path(path)):
         raise OutputExistsError(f"{os.fspath(path)}: exists and is not empty; pass --force to replace it or choose "
                                 "another --out")
-    here = Path.cwd()
-    if force and Path(path).resolve() in (here, *here.parents):
+    if not force:
+        return
+    target, here = Path(path).resolve(), Path.cwd()
+    if target in (here, *here.parents):
         raise OutputExistsError(f"{os.fspath(path)}: holds the current directory, which --force would replace; "
                                 "choose another --out")
+    for source in filter(None, inputs):
+        resolved = Path(source).resolve()
+        if resolved == target or target in resolved.parents:
+            raise OutputExistsError(f"{os.fspath(path)}: holds the input {os.fspath(source)}, which --force would "
+                                    "replace; choose another --out")
 
 
 def replace_path(built: Path, target: Path) -> None:

@@ -487,7 +487,7 @@ def _effect_list(text: str) -> tuple[str, ...]:
 
 
 def run(args: argparse.Namespace) -> int:
-    check_output(args.out, args.force)
+    check_output(args.out, args.force, (*args.bags, args.against))
     config = load_config(args.config)
     base = None
     if args.against:

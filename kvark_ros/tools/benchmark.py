@@ -251,7 +251,7 @@ def add_parser(subparsers: SubParsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    check_output(args.out, args.force)
+    check_output(args.out, args.force, (args.real, args.config))
     if args.real:
         from kvark_ros.tools.real_benchmark import run_real
         return run_real(args)

@@ -250,7 +250,7 @@ def add_parser(subparsers: SubParsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
-    check_output(out, args.force)
+    check_output(out, args.force, (args.input, args.mapping))
     document = read_yaml(args.mapping, ConfigError, "mapping file", "pass an existing mapping YAML",
                          "pass a YAML mapping file") if args.mapping else {}
     if not isinstance(document, dict):

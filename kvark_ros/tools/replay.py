@@ -363,7 +363,7 @@ def add_parser(subparsers: SubParsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    check_output(args.out, args.force)
+    check_output(args.out, args.force, (args.bag, args.reference_bag, args.model))
     config = load_config(args.config)
     model_dir = args.model or config.model_dir
     trained = load_model(model_dir, config.joint_names, urdf_sha256(config.urdf))

@@ -88,7 +88,7 @@ def add_parser(subparsers: SubParsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    check_output(args.out, args.force)
+    check_output(args.out, args.force, (*args.bags, args.augmentation))
     config: EstimatorConfig = load_config(args.config)
     source = config.model_augmentation if args.augmentation is None else args.augmentation
     augmentation = load_augmentation(source, config.joint_names) if source else None

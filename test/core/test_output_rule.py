@@ -99,3 +99,14 @@ def test_force_never_replaces_the_current_directory_or_a_parent_of_it(tmp_path, 
         with pytest.raises(OutputExistsError, match="holds the current directory"):
             check_output(path, force=True)
     check_output(str(tmp_path / "other"), force=True)
+
+
+def test_force_never_replaces_an_output_that_holds_an_input(tmp_path):
+    """`replay --bag OUT/estimates --out OUT --force` would delete its own bag at the swap: refused, naming it."""
+    out = tmp_path / "out"
+    _old_output(out)
+    with pytest.raises(OutputExistsError, match=r"holds the input .*report\.md, which --force would replace"):
+        check_output(out, force=True, inputs=(None, out / "report.md"))
+    with pytest.raises(OutputExistsError, match="holds the input"):
+        check_output(out, force=True, inputs=(out,))
+    check_output(out, force=True, inputs=(tmp_path / "elsewhere", None))

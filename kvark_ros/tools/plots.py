@@ -120,7 +120,7 @@ def _styles(names: Sequence[str], best: str | None) -> dict[str, dict]:
         elif name == HIGHLIGHTED:
             styles[name] = {"color": observer_colour(name), "lw": 1.2, "alpha": 0.95, "zorder": 3}
         else:
-            styles[name] = {"color": observer_colour(name), "lw": 0.6, "alpha": 0.7, "zorder": 2}
+            styles[name] = {"color": observer_colour(name), "lw": 0.5, "alpha": 0.45, "zorder": 2}   # faint: context
     return styles
 
 

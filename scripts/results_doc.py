@@ -17,6 +17,7 @@ import argparse
 import datetime
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -108,11 +109,11 @@ def render_demo(data: dict) -> str:
     return (f"Diagnosis of the two excitation bags: {effects}; held-out gap {data['gap'][0]:.3f} → "
             f"{data['gap'][1]:.3f} N·m. Joint RMSE (N·m) / coverage95 (the lowest joint's):\n\n"
             + scene_table(data["scenes"]) + "\n\nThe node check it ends with:\n\n```text\n"
-            + "\n".join(data["node"]) + "\n```")
+            + "\n".join(re.sub(r"/tmp/kvark-[\w-]+", "DIR", line) for line in data["node"]) + "\n```")
 
 
 def keep_quick(out: Path, stdout: str) -> dict:
-    return {"scenes": keep_scenes(read_json(out / "results.json")["scenarios"])}
+    return {"scenes": keep_scenes(read_json(out / "benchmark" / "results.json")["scenarios"])}
 
 
 def render_quick(data: dict) -> str:
@@ -125,7 +126,7 @@ def render_simulated(robot: str) -> Callable[[dict], str]:
 
 
 def keep_real(out: Path, stdout: str) -> dict:
-    results = read_json(out / "results.json")
+    results = read_json(out / "real" / "results.json")
     return {"rate_hz": results["rate_hz"], "samples": results["samples"], "effects": results["augmentation"]["effects"],
             "gap": [results["augmentation"]["gap_before"], results["augmentation"]["gap_after"]],
             "nominal": {name: observer_figures(m) for name, m in results["nominal"].items()},
@@ -215,7 +216,7 @@ SECTIONS = {
                     "--json {out}/node.json", "docs/results.md", keep_node, render_node),
     "latency": Section("kvark bench --robot panda --observer all", "docs/results.md", keep_bench, render_bench),
     "soak": Section("kvark soak --steps 1000000", "docs/results.md", keep_soak, render_soak),
-    "walkthrough": Section(f"the commands of {WALKTHROUGH}, in a copy of the project", WALKTHROUGH,
+    "walkthrough": Section("python scripts/results_doc.py --sections walkthrough", WALKTHROUGH,
                            keep_walkthrough, render_walkthrough),
 }
 
@@ -261,7 +262,8 @@ def glance_table(records: dict) -> str:
         best = min((n for n in augmented if n != "kvark"), key=lambda n: augmented[n]["joint_rmse"])
         rows.append(f"| real Panda, held out (docs/results.md) | {augmented['kvark']['joint_rmse']:.3f} | {best} "
                     f"{augmented[best]['joint_rmse']:.3f} | {augmented['kf']['joint_rmse']:.3f} | false τ_ext, N·m |")
-    for key, label in (("demo", "simulated Panda, `make demo`"), ("simulated-quick", "simulated Panda, quick benchmark")):
+    for key, label in (("simulated-panda", "simulated Panda, realistic plant"),
+                       ("simulated-ur5", "simulated UR5, realistic plant"), ("demo", "simulated Panda, `make demo`")):
         if key in records:
             for scene, observers in records[key]["figures"]["scenes"].items():
                 best = min((n for n in observers if n not in ("kvark", "oracle")),
@@ -270,7 +272,8 @@ def glance_table(records: dict) -> str:
                             f"{observers[best]['joint_rmse']:.3f} | {observers['kf']['joint_rmse']:.3f} "
                             f"| joint RMSE, N·m |")
     dates = sorted({record["date"] for record in records.values()})
-    return "\n".join(rows) + f"\n\nFrom `docs/results.json` (`make docs`, {dates[0]} to {dates[-1]})."
+    when = dates[0] if len(dates) == 1 else f"{dates[0]} to {dates[-1]}"
+    return "\n".join(rows) + f"\n\nFrom `docs/results.json` (`make docs`, {when})."
 
 
 def render(records: dict) -> None:

@@ -255,7 +255,7 @@ def test_weak_directions_and_the_damping_bias(config, trained, frame):
 
 def test_rejections_and_restarts(config, trained):
     """Bad samples, a stamp out of order and a long gap give the reference's statuses, counts and estimates."""
-    q, qd, tau = Q0, np.full(7, 0.1), np.ones(7)
+    q, qd, tau = Q0, np.zeros(7), np.ones(7)   # at rest: a constant state is consistent
     bad = q.copy()
     bad[3] = np.nan
     samples = [(0.0, q, qd, tau), (0.002, q, qd, tau), (0.004, bad, qd, tau), (0.004, q, qd, np.full(7, np.inf)),

@@ -33,7 +33,7 @@ def test_bad_samples_are_rejected_and_never_reach_the_filter(panda_config, panda
     """Bad samples in between leave the estimates exactly as without them."""
     clean = Estimator.from_config(panda_config, panda_trained)
     dirty = Estimator.from_config(panda_config, panda_trained)
-    q, qd, tau = np.array([0, -0.5, 0, -2, 0, 1.5, 0.8]), np.full(7, 0.1), np.ones(7)
+    q, qd, tau = np.array([0, -0.5, 0, -2, 0, 1.5, 0.8]), np.zeros(7), np.ones(7)   # at rest
     assert dirty.step(0.0, q, qd, tau) is None and dirty.status == Status.WARMUP
     clean.step(0.0, q, qd, tau)
     assert np.array_equal(dirty.step(0.002, q, qd, tau).tau_ext, clean.step(0.002, q, qd, tau).tau_ext)

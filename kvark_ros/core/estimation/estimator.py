@@ -28,6 +28,7 @@ from kvark_ros.core.estimation.model_store import TrainedModel, load_model
 from kvark_ros.core.estimation.observers import Observer, ResidualPredictor, make_observer
 from kvark_ros.core.estimation.payload import Payload, inertia_problem
 from kvark_ros.core.estimation.robot_model import RobotModel, condition_number, urdf_sha256
+from kvark_ros.core.estimation.step_kernel import repeated_sample
 from kvark_ros.core.estimation.tare import Tare
 
 
@@ -102,6 +103,7 @@ class Status:
     BAD_SHAPE = "rejected: q, qd or tau_m has the wrong length"
     NON_FINITE = "rejected: NaN, Inf or an overflowing value (|x| > 1e150) in q, qd or tau_m"
     STAMP_NOT_INCREASING = "rejected: stamp not after the previous sample (out of order or duplicate)"
+    REPEATED = "rejected: q, qd and tau_m repeat the previous sample exactly while moving (a stale sample re-sent)"
     GAP_RESET = "reset: gap between samples longer than input.max_gap"
     DIVERGED_RESET = "reset: filter produced a non-finite estimate"
 
@@ -174,6 +176,7 @@ class Estimator:
         self.unobservable_samples = 0     # estimates with a wrench direction the joints cannot sense (§1.4.1)
         self.status = Status.WARMUP
         self._p_prev, self._u_prev = np.zeros(robot.n), np.zeros(robot.n)
+        self._last_sample = np.full((3, robot.n), np.nan)     # q, q̇, τ_m of the last sample taken (repeats)
         # A compiled filter (momentum-form K-VARK) runs the whole step compiled (core.estimation.compiled_step; imported
         # here, so that the numpy path never loads numba).
         self._compiled = None
@@ -270,7 +273,7 @@ class Estimator:
     def continue_from(self, other: "Estimator") -> None:
         """Continue from ``other``'s state, so that swapping it for this one changes no output (model reload).
 
-        Copies the previous sample (stamp, p, u), ``status``, the observer's filter state, the
+        Copies the previous sample (stamp, p, u, its q, q̇, τ_m), ``status``, the observer's filter state, the
         contact and collision detectors' state and the tare; ``counts`` stay this estimator's own.
         Raises ``ValueError`` (and changes nothing) unless both have the same joints and the same
         observer class and name, or if the observer states do not fit (``Observer.load_state``).
@@ -284,6 +287,7 @@ class Estimator:
         mine.load_state(theirs.state())
         self._stamp = other._stamp
         self._p_prev[:], self._u_prev[:] = other._p_prev, other._u_prev
+        self._last_sample[:] = other._last_sample
         self.status = other.status
         self.contact.continue_from(other.contact)
         self.collision.continue_from(other.collision)
@@ -316,11 +320,18 @@ class Estimator:
             if stamp <= previous:
                 self._reject(Status.STAMP_NOT_INCREASING)
                 return None
+            if repeated_sample(stamp - previous, q, qd, tau_m, self._last_sample):
+                # A stale state under a new stamp: stepping it would hold p for one period and then see the whole
+                # catch-up as one momentum jump, which the onset detector takes for a contact (docs/method.md
+                # §4.8). The next fresh sample's step spans both periods instead.
+                self._reject(Status.REPEATED)
+                return None
             if stamp - previous > self.config.input.max_gap:
                 self.reset()
                 self._reject(Status.GAP_RESET)
                 previous, gap_reset = None, True
         if previous is None:
+            self._last_sample[0], self._last_sample[1], self._last_sample[2] = q, qd, tau_m
             if compiled is not None:
                 compiled.prime(q, qd, tau_m)
             else:

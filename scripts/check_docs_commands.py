@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from doc_blocks import DOCUMENTS, LONG_RUNNING_S, ROOT, Block, scratch_copy, shell_blocks
+from doc_blocks import DOCUMENTS, LONG_RUNNING_S, Block, scratch_copy, shell_blocks
 
 QUICK_START_SKIPPED = ("make test",)
 
@@ -71,8 +71,9 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         failed = []
         for document in args.documents:
-            blocks = [block for block in shell_blocks(document) if block.kind in ("run", "long-running")]
-            skipped = [block for block in shell_blocks(document) if block.kind == "ros-install"]
+            every = shell_blocks(document)
+            blocks = [block for block in every if block.kind in ("run", "long-running")]
+            skipped = [block for block in every if block.kind == "ros-install"]
             if skipped:
                 print(f"docs-check: {document}: {len(skipped)} block(s) need a ROS 2 install; not run here")
             if blocks and not run_document(document, copy, scripts, blocks):

@@ -4,6 +4,8 @@ A table is named numeric columns. A CSV or text log has one header row naming it
 before it that start with ``#`` are comments); the delimiter is a semicolon when the header has more
 of them than commas (a spreadsheet's export where the decimal separator is a comma), else a comma
 when the header has one, else whitespace; an empty CSV cell reads as NaN, a decimal comma is an error.
+A log without a header row (``header=False``) has its columns named by position, ``1`` for the first
+(as a MATLAB or awk script counts them); the first data row then decides the delimiter.
 NPZ and MAT files hold arrays by name: a vector is the column ``name``, a 2-D array a block whose column
 k is ``name:k``. Samples run along a 2-D array's longer axis, so MATLAB's (1, T) vectors and (k, T)
 matrices read like (T,) and (T, k) ones.
@@ -74,19 +76,22 @@ def table_format(path: PathLike, fmt: str | None = None) -> str:
     return _SUFFIXES[suffix]
 
 
-def read_table(path: PathLike, fmt: str | None = None) -> Table:
-    """Read a CSV/text, NPZ or MAT file into a :class:`Table` (module docstring)."""
+def read_table(path: PathLike, fmt: str | None = None, header: bool = True) -> Table:
+    """Read a CSV/text, NPZ or MAT file into a :class:`Table` (module docstring); ``header=False``: a text log
+    without a header row, its columns named ``1`` … ``N``."""
     given = Path(path)
     kind = table_format(given, fmt)
     if not given.is_file():
         raise bag_error(given, "no such file" if not given.exists() else "is not a file", "check the input path")
     if kind == "csv":
-        return _read_text(given)
+        return _read_text(given, header)
+    if not header:
+        raise bag_error(given, f"is a {kind.upper()} file, whose arrays have names", "drop --no-header (header: false)")
     return _from_arrays(given, _load_npz(given) if kind == "npz" else _load_mat(given))
 
 
-def _read_text(path: Path) -> Table:
-    """A delimited text file with a header row (module docstring)."""
+def _read_text(path: Path, header: bool) -> Table:
+    """A delimited text file with a header row, or without one (module docstring)."""
     try:
         lines = path.read_text().splitlines()
     except UnicodeDecodeError as exc:
@@ -95,10 +100,17 @@ def _read_text(path: Path) -> Table:
         raise bag_error(path, f"cannot read it ({exc.strerror})", "check the file permissions") from exc
     numbered = [(k + 1, line) for k, line in enumerate(lines) if line.strip() and not line.lstrip().startswith("#")]
     if not numbered:
-        raise bag_error(path, "is empty (no header row)", "export the log with a header row naming the columns")
-    header_line, header = numbered[0]
-    delimiter = ";" if header.count(";") > header.count(",") else "," if "," in header else None
-    names = [name.strip().strip('"').strip("'") for name in header.split(delimiter)]
+        raise bag_error(path, "is empty (no header row)" if header else "is empty",
+                        "export the log with a header row naming the columns" if header else "export the log's data")
+    header_line, first = numbered[0]
+    delimiter = ";" if first.count(";") > first.count(",") else "," if "," in first else None
+    if not header:
+        names = [str(k + 1) for k in range(len(first.split(delimiter)))]
+        return Table(path, _columns(path, numbered, names, delimiter, "the first row"))
+    names = [name.strip().strip('"').strip("'") for name in first.split(delimiter)]
+    if len(names) > 1 and all(_is_number(name) for name in names):
+        raise bag_error(path, f"line {header_line}: the first row is numbers, not column names",
+                        "pass --no-header (mapping header: false) and name columns by position: --time 1")
     if not all(names):
         raise bag_error(path, f"line {header_line}: the header has an empty column name", "name every column")
     repeated = sorted({name for name in names if names.count(name) > 1})
@@ -108,23 +120,38 @@ def _read_text(path: Path) -> Table:
     body = numbered[1:]
     if not body:
         raise bag_error(path, "has a header but no data rows", "export the log with its data")
+    return Table(path, _columns(path, body, names, delimiter, "the header"))
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _columns(path: Path, body: list[tuple[int, str]], names: list[str], delimiter: str | None,
+             first: str) -> dict[str, FloatArray]:
+    """The data rows as one contiguous array per named column (``first``: the row that set the column count)."""
     try:
         data = np.loadtxt(io.StringIO("\n".join(line for _, line in body)), delimiter=delimiter, ndmin=2)
         if data.shape[1] != len(names):
             raise ValueError("column count")
     except ValueError:
-        data = _parse_cells(path, body, names, delimiter)
-    return Table(path, {name: np.ascontiguousarray(data[:, k]) for k, name in enumerate(names)})
+        data = _parse_cells(path, body, names, delimiter, first)
+    return {name: np.ascontiguousarray(data[:, k]) for k, name in enumerate(names)}
 
 
-def _parse_cells(path: Path, body: list[tuple[int, str]], names: list[str], delimiter: str | None) -> FloatArray:
+def _parse_cells(path: Path, body: list[tuple[int, str]], names: list[str], delimiter: str | None,
+                 first: str) -> FloatArray:
     """Cell by cell, for the rows the fast reader refused: an empty cell is NaN, anything else must be a number."""
     data = np.empty((len(body), len(names)))
     for row, (line_no, line) in enumerate(body):
         cells = line.split(delimiter)
         if len(cells) != len(names):
-            raise bag_error(path, f"line {line_no} has {len(cells)} fields, the header has {len(names)}",
-                            "fix the row or the header")
+            raise bag_error(path, f"line {line_no} has {len(cells)} fields, {first} has {len(names)}",
+                            f"fix the row or {first}")
         for k, cell in enumerate(cells):
             text = cell.strip()
             try:

@@ -3,6 +3,8 @@
 A mapping is a small YAML file (``--mapping``), overridden key by key by the command's flags::
 
     format: csv                      # csv | npz | mat; default from the file suffix
+    header: true                     # false: a text log without a header row; columns are named by position,
+                                     # 1 for the first, and a list may hold ranges: position: 2-7
     time: {column: timestamp, unit: s, offset: 0.0}    # unit s | ms | us | ns; offset in s after scaling
     first_index: 0                   # what {i} counts from for the first joint: 0 or 1
     joints: [shoulder_pan_joint, ...]                   # or --joints, or --config's robot_model.joint_names
@@ -16,6 +18,8 @@ A mapping is a small YAML file (``--mapping``), overridden key by key by the com
     topics: {joint_states: /joint_states, effort_commands: /effort_commands, wrench: /ft_sensor/wrench,
              external_torque: /ground_truth/external_joint_torque}
 
+A headerless log (``header: false``, ``--no-header``) names its columns ``1`` … ``N``: ``time: 1``,
+``position: 2-7`` (a range, one column per joint), ``effort: {columns: 14-19, scale: [...]}``.
 Scale factors turn the log's units into SI (degrees → rad: 0.0174533; a motor current → joint torque:
 the torque constant times the gear ratio, N·m/A). Every problem is one ``ConfigError`` naming the key.
 """
@@ -24,7 +28,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 from kvark_ros.core.config import ConfigError
@@ -37,7 +41,7 @@ FIELDS = ("position", "velocity", "effort", "command", "wrench", "external_torqu
 JOINT_FIELDS = ("position", "velocity", "effort", "command", "external_torque")
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 TOPIC_KEYS = tuple(f.name for f in fields(TopicNames))
-_TOP_KEYS = ("format", "time", "first_index", "joints", *FIELDS, "differentiate_velocity", "topics")
+_TOP_KEYS = ("format", "time", "first_index", "joints", *FIELDS, "differentiate_velocity", "topics", "header")
 _FIELD_KEYS = ("columns", "pattern", "scale", "first_index", "frame")
 
 
@@ -85,6 +89,7 @@ class Mapping:
     differentiate_velocity: bool
     format: str | None
     topics: TopicNames
+    header: bool = True
 
 
 def _number(value: Any, what: str) -> float:
@@ -93,12 +98,28 @@ def _number(value: Any, what: str) -> float:
     return float(value)
 
 
+def _position(x: Any) -> bool:
+    """A column number as YAML writes it (a headerless log's column)."""
+    return isinstance(x, int) and not isinstance(x, bool) and x >= 1
+
+
 def _names(value: Any, what: str) -> tuple[str, ...]:
-    """A list of strings, or one comma-separated string."""
-    items = value.split(",") if isinstance(value, str) else value
-    if not isinstance(items, list) or not items or not all(isinstance(x, str) and x.strip() for x in items):
+    """A list of strings (or column numbers), or one comma-separated string."""
+    items = value.split(",") if isinstance(value, str) else [value] if _position(value) else value
+    if not isinstance(items, list) or not items or not all(
+            (isinstance(x, str) and x.strip()) or _position(x) for x in items):
         raise ConfigError(f"mapping: {what} must be a non-empty list of names, got {value!r}")
-    return tuple(x.strip() for x in items)
+    return tuple(str(x).strip() for x in items)
+
+
+def column_range(name: str) -> list[str]:
+    """``A-B`` (column numbers of a headerless log, A ≤ B) as the names A … B; any other name as itself."""
+    first, dash, last = name.partition("-")
+    if not dash or not first.isdigit() or not last.isdigit():
+        return [name]
+    if int(first) < 1 or int(last) < int(first):
+        raise ConfigError(f"mapping: column range {name!r} must count up from 1 or more (e.g. 2-7)")
+    return [str(k) for k in range(int(first), int(last) + 1)]
 
 
 def _first_index(value: Any, what: str) -> int:
@@ -139,8 +160,10 @@ def _field(name: str, value: Any) -> FieldSpec:
 
 
 def _time(value: Any) -> tuple[str, str, float]:
-    if isinstance(value, str):
+    if isinstance(value, str) or _position(value):
         value = {"column": value}
+    if isinstance(value, dict) and _position(value.get("column")):
+        value = {**value, "column": str(value["column"])}
     if not isinstance(value, dict) or not isinstance(value.get("column"), str) or not value["column"]:
         raise ConfigError("mapping: time needs a column (time: NAME or time: {column: NAME, unit: s}); "
                           "or pass --time NAME")
@@ -171,19 +194,25 @@ def parse_mapping(document: Any) -> Mapping:
     specs = {name: _field(name, document[name]) for name in FIELDS if document.get(name) is not None}
     if "wrench" in specs and specs["wrench"].frame is None:
         raise ConfigError("mapping: wrench needs the sensor's frame name (wrench: {frame: F, ...} or --wrench-frame F)")
+    header = document.get("header", True)
+    if not isinstance(header, bool):
+        raise ConfigError(f"mapping: header must be true or false (a log without a header row), got {header!r}")
+    if not header:
+        specs = {name: replace(spec, columns=tuple(c for column in spec.columns for c in column_range(column)))
+                 if spec.columns is not None else spec for name, spec in specs.items()}
     differentiate = document.get("differentiate_velocity", False)
     if not isinstance(differentiate, bool):
         raise ConfigError(f"mapping: differentiate_velocity must be true or false, got {differentiate!r}")
     return Mapping(*_time(document.get("time")), _first_index(document.get("first_index", 0), "first_index"),
                    None if joints is None else _names(joints, "joints"), specs, differentiate, fmt,
-                   TopicNames(**topics))
+                   TopicNames(**topics), header)
 
 
 def merge_flags(document: dict[str, Any], flags: dict[str, Any]) -> dict[str, Any]:
     """The mapping document with the command's flags on top (a copy).
 
     ``flags`` holds the flag values that were given: ``time``, ``time_unit``, ``time_offset``, ``first_index``,
-    ``format``, ``differentiate_velocity``, ``wrench_frame``, a field name → pattern or comma-separated
+    ``format``, ``differentiate_velocity``, ``header``, ``wrench_frame``, a field name → pattern or comma-separated
     columns, ``scale`` → {field: [factors]} and ``topics`` → {key: topic}.
     """
     merged = copy.deepcopy(document)
@@ -194,7 +223,7 @@ def merge_flags(document: dict[str, Any], flags: dict[str, Any]) -> dict[str, An
             time[key] = flags[flag]
     if time:
         merged["time"] = time
-    for key in ("first_index", "format", "differentiate_velocity"):
+    for key in ("first_index", "format", "differentiate_velocity", "header"):
         if key in flags:
             merged[key] = flags[key]
     for name in FIELDS:

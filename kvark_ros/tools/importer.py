@@ -184,6 +184,8 @@ def _flags(args: argparse.Namespace) -> dict[str, object]:
         if getattr(args, key) is not None}
     if args.differentiate_velocity:
         flags["differentiate_velocity"] = True
+    if args.no_header:
+        flags["header"] = False
     scale: dict[str, list[float]] = {}
     for item in args.scale:
         name, _, text = item.partition("=")
@@ -207,8 +209,8 @@ def add_parser(subparsers: SubParsers) -> None:
         epilog="A field SPEC is a pattern with {i}, the joint index (actual_q_{i}, q{i}; q:{i} is column i of an\n"
                "NPZ/MAT array q), or comma-separated column names in joint order (wrench: fx,fy,fz,tx,ty,tz).\n"
                "Flags override the --mapping file key by key (see examples/ur_rtde_mapping.yaml).")
-    parser.add_argument("input", help="the log: .csv/.txt/.log/.tsv/.dat (header row; comma, semicolon or whitespace "
-                                      "delimited), .npz or .mat")
+    parser.add_argument("input", help="the log: .csv/.txt/.log/.tsv/.dat (header row, or see --no-header; comma, "
+                                      "semicolon or whitespace delimited), .npz or .mat")
     parser.add_argument("--out", required=True, metavar="BAG",
                         help="bag directory to write (new or empty; see --force)")
     parser.add_argument("--mapping", metavar="FILE", help="YAML column mapping (examples/*_mapping.yaml)")
@@ -216,6 +218,9 @@ def add_parser(subparsers: SubParsers) -> None:
     parser.add_argument("--force", action="store_true", help="replace an existing --out (only once the new bag is "
                                                              "complete)")
     parser.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="bag storage (default mcap)")
+    parser.add_argument("--no-header", action="store_true",
+                        help="the text log has no header row: its columns are named by position, 1 for the first, "
+                             "and a field may name a range (--time 1 --position 2-7)")
     names = parser.add_argument_group("time and joints")
     names.add_argument("--time", metavar="COLUMN", help="time column")
     names.add_argument("--time-unit", choices=tuple(TIME_UNITS), help="unit of the time column (default s)")
@@ -258,7 +263,7 @@ def run(args: argparse.Namespace) -> int:
                           "(see examples/ur_rtde_mapping.yaml)")
     mapping = parse_mapping(merge_flags(document, _flags(args)))
     fmt = table_format(args.input, mapping.format)
-    table = read_table(args.input, fmt)
+    table = read_table(args.input, fmt, mapping.header)
     recorded, report = build_run(table, mapping, _joints(args, mapping))
     write_run(out, recorded, storage=args.storage, topics=mapping.topics, force=args.force)
     kept = report.stamp.size

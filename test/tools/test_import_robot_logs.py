@@ -277,3 +277,44 @@ def test_committed_examples_are_the_generated_ones_and_import_cleanly(tmp_path, 
     assert _import(EXAMPLES / "panda_log_2.txt", "--mapping", EXAMPLES / "franka_log_mapping.yaml",
                    "--out", tmp_path / "panda") == 0
     assert len(read_run(tmp_path / "panda").joint_states.stamp) == 4000
+
+
+def test_headerless_log_with_columns_by_position_and_ranges(tmp_path, capsys):
+    """The UR log without its header row (as the UR10e logs of Mamedov et al. 2020 are written): ``--no-header``
+    names the columns 1 … 25, ``--position 2-7`` is a range; the bag equals the one the header row gives."""
+    text, truth = ur_rtde_log()
+    headerless = _write(tmp_path, "ur.csv", text.split("\n", 1)[1])
+    bag = tmp_path / "bag"
+    scale = "effort=" + ",".join(str(k) for k in UR_TORQUE_CONSTANTS)
+    assert _import(headerless, "--no-header", "--time", "1", "--position", "2-7", "--velocity", "8,9,10,11,12,13",
+                   "--effort", "14-19", "--scale", scale, "--command", "20-25", "--joints", ",".join(UR_JOINTS),
+                   "--out", bag) == 0
+    assert "196 of 200 kept" in capsys.readouterr().out
+    run = read_run(bag, UR_JOINTS)
+    kept = truth["kept"]
+    np.testing.assert_array_equal(run.joint_states.position, truth["q"][kept])
+    np.testing.assert_array_equal(run.joint_states.velocity, truth["qd"][kept])
+    np.testing.assert_array_equal(run.joint_states.effort, truth["current"][kept] * np.array(UR_TORQUE_CONSTANTS))
+    np.testing.assert_array_equal(run.commands.effort, truth["moment"][kept])
+
+
+def test_headerless_mapping_file_and_its_errors(tmp_path, capsys):
+    text, _ = ur_rtde_log()
+    headerless = _write(tmp_path, "ur.csv", text.split("\n", 1)[1])
+    mapping = _write(tmp_path, "m.yaml", {"header": False, "time": 1, "position": "2-7", "velocity": [8, 9, 10, 11,
+                                                                                                       12, 13],
+                                          "effort": {"columns": "14-19", "scale": list(UR_TORQUE_CONSTANTS)}})
+    assert _import(headerless, "--mapping", mapping, "--joints", ",".join(UR_JOINTS), "--out", tmp_path / "a") == 0
+    capsys.readouterr()
+    # without --no-header the first data row would be taken for column names: one line naming the flag
+    assert _import(headerless, "--time", "1", "--position", "2-7", "--velocity", "8-13", "--effort", "14-19",
+                   "--joints", ",".join(UR_JOINTS), "--out", tmp_path / "b") != 0
+    assert "pass --no-header" in capsys.readouterr().err
+    # a range past the last column names the missing column and what the log has
+    assert _import(headerless, "--no-header", "--time", "1", "--position", "2-7", "--velocity", "8-13", "--effort",
+                   "21-26", "--joints", ",".join(UR_JOINTS), "--out", tmp_path / "c") != 0
+    assert "has no column '26'" in capsys.readouterr().err
+    assert _import(headerless, "--no-header", "--time", "1", "--position", "7-2", "--velocity", "8-13", "--effort",
+                   "14-19", "--joints", ",".join(UR_JOINTS), "--out", tmp_path / "d") != 0
+    assert "column range '7-2'" in capsys.readouterr().err
+    assert not any((tmp_path / name).exists() for name in "bcd")

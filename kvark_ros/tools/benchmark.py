@@ -243,6 +243,9 @@ def add_parser(subparsers: SubParsers) -> None:
     real.add_argument("--config", help="estimator config (default: config/<robot>.yaml)")
     real.add_argument("--train-share", type=float, default=0.7, help="first share of the time to train on "
                                                                       "(default 0.7)")
+    real.add_argument("--trim", nargs=2, type=float, default=(0.0, 0.0), metavar=("START", "END"),
+                      help="drop the first START and the last END seconds of the recording first (a start-up, "
+                           "a stop; default 0 0)")
     real.add_argument("--rate", type=float, default=500.0,
                       help="keep every k-th sample for about this rate, Hz (default 500; 0: as recorded)")
     real.add_argument("--no-baselines", action="store_true", help="skip the learned baselines (faster)")

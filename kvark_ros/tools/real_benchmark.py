@@ -39,11 +39,12 @@ from kvark_ros.tools.replay import run_observer, zero_truth
 LEARNED_BASELINES = ("gpadkf", "nnadkf", "gmr_gp")
 
 
-def split(inputs: EstimatorInputs, train_share: float, rate: float) -> tuple[EstimatorInputs, EstimatorInputs]:
-    """(training part, held-out part) by time, every k-th sample kept so the rate is about ``rate`` Hz
-    (0: as recorded; ``decimation_step``)."""
-    kept = select_samples(inputs, rate=rate)
-    cut = inputs.stamp[0] + train_share * (inputs.stamp[-1] - inputs.stamp[0])
+def split(inputs: EstimatorInputs, train_share: float, rate: float,
+          trim: tuple[float, float] = (0.0, 0.0)) -> tuple[EstimatorInputs, EstimatorInputs]:
+    """(training part, held-out part) by time of the recording less ``trim`` (s dropped at its start and end),
+    every k-th sample kept so the rate is about ``rate`` Hz (0: as recorded; ``decimation_step``)."""
+    kept = select_samples(inputs, trim, rate)
+    cut = kept.stamp[0] + train_share * (kept.stamp[-1] - kept.stamp[0])
     return kept.take(kept.stamp < cut), kept.take(kept.stamp >= cut)
 
 
@@ -65,7 +66,9 @@ def report(results: dict[str, Any]) -> str:
     lines = [f"# Real recording `{results['bag']}`", "",
              f"- {results['samples']['train']} training samples (first {results['train_share']:.0%}), "
              f"{results['samples']['held_out']} held out at about {results['rate_hz']:.0f} Hz; τ_m from "
-             f"{results['torque_source']}; true external torque zero (contact-free recording)",
+             f"{results['torque_source']}; true external torque zero (contact-free recording)"
+             + (" after dropping {:g} s at the start and {:g} s at the end".format(*results["trim_s"])
+                if any(results.get("trim_s", ())) else ""),
              f"- augmentation named by kvark diagnose: {', '.join(results['augmentation']['effects']) or 'none'} "
              f"(held-out gap {results['augmentation']['gap_before']:.3f} → "
              f"{results['augmentation']['gap_after']:.3f} N·m)",
@@ -124,7 +127,7 @@ def _run_real(args: argparse.Namespace, out: Path) -> int:
         raise ConfigError(f"--train-share {args.train_share} is outside [0.1, 0.9]; the held-out part must be "
                           "long enough to judge and the training part to learn from")
     inputs = read_inputs(args.real, config)[1]
-    train, held = split(inputs, args.train_share, args.rate)
+    train, held = split(inputs, args.train_share, args.rate, tuple(args.trim))
     if len(train) < 500 or len(held) < 100:
         raise BagError(f"{args.real}: {len(train)} training and {len(held)} held-out samples; record at least "
                        "a few seconds of motion")
@@ -139,7 +142,7 @@ def _run_real(args: argparse.Namespace, out: Path) -> int:
     save_model(out / "model", nominal)
     log(f"[benchmark] step 2/4: {len(observers)} observers on the held-out part, nominal model")
     results: dict[str, Any] = {
-        "bag": str(args.real), "train_share": args.train_share, "torque_source": inputs.torque_source,
+        "bag": str(args.real), "train_share": args.train_share, "trim_s": [float(v) for v in args.trim], "torque_source": inputs.torque_source,
         "joint_names": list(config.joint_names),
         "rate_hz": round(1.0 / float(np.median(np.diff(held.stamp))), 1),
         "samples": {"train": len(train), "held_out": len(held)},

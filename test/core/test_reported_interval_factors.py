@@ -128,3 +128,13 @@ def test_training_calibrates_the_intervals_on_its_own_recordings(panda_trained):
     scale = panda_trained.interval_scale
     assert scale is not None and scale.scale.shape == (7,)
     assert np.all((scale.scale > 0.05) & (scale.scale < 20.0))
+
+
+def test_each_factor_is_the_larger_of_the_in_sample_one_and_the_one_on_motion_the_model_has_not_seen(panda_trained):
+    """Training reads c twice (docs/method.md §4.13): on its own recordings, and on their last 20 % with a model
+    refitted without them (the model error a new recording meets); each joint keeps the larger, so an interval is
+    never narrower than the in-sample one. The fixture's 20 s recording leaves 4 s unseen, over MIN_UNSEEN (2 s)."""
+    read = panda_trained.info["interval_factors"]
+    assert read["unseen"] is not None and read["unseen_seconds"] == pytest.approx(4.0, abs=0.01)
+    expected = np.clip(np.maximum(read["in_sample"], read["unseen"]), 0.05, 20.0)
+    np.testing.assert_allclose(panda_trained.interval_scale.scale, expected, rtol=0, atol=0)

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.signal import savgol_filter
 
 from kvark_ros import __version__
-from kvark_ros.core.estimation.calibration import CALIBRATED_OBSERVER
+from kvark_ros.core.estimation.calibration import CALIBRATED_OBSERVER, IntervalScale
 from kvark_ros.core.config import FilterSettings, default_filter_settings
 from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.core.estimation.model_store import TrainedModel
@@ -49,6 +49,7 @@ HOLDOUT = 0.2                # share held out (``--holdout``): random samples fo
 COVERAGE_TARGET = 0.95       # λ₂ is set so that 95 % of held-out residuals fall in μ ± 1.96 σ
 LAMBDA2_GRID = np.geomspace(1e-2, 1e8, 61)
 SAVGOL_WINDOW = 0.15         # s, window of the acceleration and torque filter (75 samples at 500 Hz)
+MIN_UNSEEN = 2.0             # s of unseen recording ends (4 × the 0.5 s warm-up) below which c is read in-sample only
 BAND_WINDOW = 0.05           # s, the same filter for the friction the static band is read from (band_friction)
 
 
@@ -255,12 +256,13 @@ def train_model(robot: RobotModel, robot_name: str, segments: Sequence[Estimator
         q_held, g_held = data.q[held_out], data.g[held_out]
         log(f"[train] KMP residual of {len(kinds)} joints: GMM → GMR, GP fit on {(~held_out).sum()} samples, "
             f"{held_out.sum()} held out for λ2 ...")
-        z = second_inputs(kinds, data.q, data.g)
-        kmp = fit_kmp(qd_fit, z[~held_out], tau_fit, kinds, N_COMPONENTS, _n_support(kinds), seed, executor)
+        kmp, coverage = fit_residual(data, kinds, ~held_out, held_out, seed, executor)
         log(f"[train] GP fit: length scale {np.round(kmp.hyper.length_scale, 3).tolist()} rad/s, "
             f"λ1 {np.round(kmp.hyper.lambda1, 4).tolist()}")
-        kmp, coverage = calibrate_lambda2(kmp, data.qd[held_out], data.tau_r[held_out], q_held, g_held)
         log(f"[train] KMP λ2 {kmp.hyper.lambda2.tolist()}; held-out 95% coverage {np.round(coverage, 3).tolist()}")
+        head = ~recording_ends(data, holdout)
+        log(f"[train] KMP refitted on all but the last {holdout:.0%} of every recording, for the kvark intervals ...")
+        head_kmp = fit_residual(data, kinds, head & ~held_out, head & held_out, seed, executor)[0]
         for line in lambda2_warnings(kmp.hyper.lambda2, coverage, robot.joint_names):
             log(line)
         tuning = _tuning(data, lambda seg, dyn: kmp.predict_batch(seg.qd, seg.q, dyn.g)[0])
@@ -301,7 +303,8 @@ def train_model(robot: RobotModel, robot_name: str, segments: Sequence[Estimator
         + ", ".join(f"{name} {value:.2f}" for name, value in zip(robot.joint_names, stiction.band)))
     trained = TrainedModel(robot_name, robot.joint_names, kmp, tuning, info, residuals, tunings, noise,
                            robot.augmentation, sample_period, stiction)
-    return calibrate_intervals(trained, data, settings or default_filter_settings(), log)
+    return calibrate_intervals(trained, data, settings or default_filter_settings(), log,
+                               (replace(trained, residual=head_kmp), ~head))
 
 
 def band_friction(robot: RobotModel, data: TrainingData) -> np.ndarray:
@@ -316,18 +319,55 @@ def band_friction(robot: RobotModel, data: TrainingData) -> np.ndarray:
     return friction_torque(np.concatenate(residual), robot.augmentation, data.q, data.qd, np.zeros_like(data.qd))
 
 
+def fit_residual(data: TrainingData, kinds: tuple[str, ...], fit: np.ndarray, held: np.ndarray, seed: int,
+                 executor: Executor | None) -> tuple[KMPResidualModel, np.ndarray]:
+    """The KMP fitted on the samples ``fit`` (T,) bool with λ₂ calibrated on ``held`` (§3.5); (model, held-out
+    coverage95 per joint)."""
+    z = second_inputs(kinds, data.q, data.g)
+    kmp = fit_kmp(data.qd[fit], z[fit], data.tau_r[fit], kinds, N_COMPONENTS, _n_support(kinds), seed, executor)
+    return calibrate_lambda2(kmp, data.qd[held], data.tau_r[held], data.q[held], data.g[held])
+
+
+def recording_ends(data: TrainingData, share: float) -> np.ndarray:
+    """(T,) bool: the last ``share`` of every recording, in time (motion a model fitted on the rest has not seen)."""
+    return np.concatenate([seg.stamp >= seg.stamp[-1] - share * (seg.stamp[-1] - seg.stamp[0])
+                           for seg in data.segments])
+
+
 def calibrate_intervals(trained: TrainedModel, data: TrainingData, settings: FilterSettings,
-                        log: Callable[[str], None]) -> TrainedModel:
-    """``trained`` with kvark's interval factors c read off its own contact-free recordings (docs/method.md §4.13)."""
+                        log: Callable[[str], None],
+                        unseen: tuple[TrainedModel, np.ndarray] | None = None) -> TrainedModel:
+    """``trained`` with kvark's interval factors c read off contact-free recordings (docs/method.md §4.13).
+
+    c is read in-sample (``trained`` on every sample) and, with ``unseen`` (a model fitted without some samples,
+    those samples (T,) bool: the ends of the recordings) of at least ``MIN_UNSEEN`` s, also where that model has
+    not seen the motion: the model error a new recording meets. Each joint keeps the larger factor."""
     started = time.perf_counter()
     velocity = settings.stiction_velocity
     band = (None if trained.stiction is None or velocity == 0.0
             else lambda qd: trained.stiction.variance(qd, velocity))
-    scale = interval_scale(make_observer(CALIBRATED_OBSERVER, trained, settings),
-                           [seg.stamp for seg in data.segments], [seg.qd for seg in data.segments],
-                           [seg.q for seg in data.segments], [dyn.p for dyn in data.dynamics],
-                           [dyn.u for dyn in data.dynamics], [dyn.g for dyn in data.dynamics], band)
-    log("[train] kvark interval factors c (95 % of the contact-free τ̂ within ±1.96 √(c²σ² + σ²_s)): "
-        + ", ".join(f"{name} {value:.2f}" for name, value in zip(trained.joint_names, scale.scale))
-        + f" ({time.perf_counter() - started:.1f} s)")
-    return replace(trained, interval_scale=scale)
+
+    def factors(model: TrainedModel, rows: Sequence[np.ndarray]) -> np.ndarray:
+        kept = [(seg, dyn, row) for seg, dyn, row in zip(data.segments, data.dynamics, rows) if row.sum() > 1]
+        return interval_scale(make_observer(CALIBRATED_OBSERVER, model, settings),
+                              [seg.stamp[row] for seg, _, row in kept], [seg.qd[row] for seg, _, row in kept],
+                              [seg.q[row] for seg, _, row in kept], [dyn.p[row] for _, dyn, row in kept],
+                              [dyn.u[row] for _, dyn, row in kept], [dyn.g[row] for _, dyn, row in kept],
+                              band).scale
+
+    in_sample = factors(trained, [np.ones(len(seg.stamp), bool) for seg in data.segments])
+    scale, out, seconds = in_sample, None, 0.0
+    text = "in-sample " + ", ".join(f"{name} {value:.2f}" for name, value in zip(trained.joint_names, in_sample))
+    if unseen is not None:
+        cuts = np.cumsum([0] + [len(seg.stamp) for seg in data.segments])
+        parts = [unseen[1][a:b] for a, b in zip(cuts[:-1], cuts[1:])]
+        seconds = sum(float(np.ptp(seg.stamp[part])) for seg, part in zip(data.segments, parts) if part.sum() > 1)
+        if seconds >= MIN_UNSEEN:
+            out = factors(unseen[0], parts)
+            text += "; on unseen ends " + ", ".join(f"{value:.2f}" for value in out)
+            scale = np.maximum(in_sample, out)
+    log(f"[train] kvark interval factors c (95 % of the contact-free τ̂ within ±1.96 √(c²σ² + σ²_s)): {text} "
+        f"({time.perf_counter() - started:.1f} s)")
+    info = {**trained.info, "interval_factors": {"in_sample": in_sample.tolist(), "unseen_seconds": round(seconds, 2),
+                                                 "unseen": None if out is None else out.tolist()}}
+    return replace(trained, interval_scale=IntervalScale(scale), info=info)

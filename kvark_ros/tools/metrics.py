@@ -19,7 +19,12 @@ def _rounded(values: np.ndarray | float) -> Any:
     return [None if not np.isfinite(v) else round(float(v), 6) for v in values]
 
 
-def observer_metrics(result: Any, truth: Any, stamp: np.ndarray) -> dict[str, Any]:
+def static_band(trained: Any) -> np.ndarray | None:
+    """The trained model's static friction band F_s (n,) N·m, or None (not identified)."""
+    return None if trained is None or trained.stiction is None else trained.stiction.band
+
+
+def observer_metrics(result: Any, truth: Any, stamp: np.ndarray, band: np.ndarray | None = None) -> dict[str, Any]:
     """metrics.json's per-observer entry: joint/force/moment RMSE (:func:`wrench_metrics`: force and moment over the
     samples with a known true wrench), |error| statistics, coverage95, µs/step,
     and the contact and collision flags' figures (:func:`contact_metrics`, under ``contact`` and ``collision``);
@@ -27,7 +32,8 @@ def observer_metrics(result: Any, truth: Any, stamp: np.ndarray) -> dict[str, An
 
     Only samples where the observer gave an estimate and the truth is finite count. coverage95 is the
     share of joint samples whose true τ_ext lies within the reported ±1.96 σ (None without a covariance); the
-    other covariance figures are :func:`calibration_metrics`' (each None without a covariance).
+    other covariance figures are :func:`calibration_metrics`' (each None without a covariance). ``band``: the
+    model's static friction band F_s (n,) N·m, for the contact delays counted from the band (:func:`contact_metrics`).
     """
     entry: dict[str, Any] = {"us_per_step": round(result.us_per_step, 2),
                              "estimates": int(result.valid.sum()), "rejected": result.rejected,
@@ -48,8 +54,8 @@ def observer_metrics(result: Any, truth: Any, stamp: np.ndarray) -> dict[str, An
         "mean_abs": _rounded(magnitude.mean()), "p95": _rounded(np.percentile(magnitude, 95)),
         "max": _rounded(magnitude.max()), "temporal_std": _rounded(error.std(axis=0).mean()),
         "coverage95": None, **dict.fromkeys(CALIBRATION_KEYS),
-        "contact": contact_metrics(stamp, result.contact, result.valid, truth.tau_ext),
-        "collision": contact_metrics(stamp, result.collision, result.valid, truth.tau_ext),
+        "contact": contact_metrics(stamp, result.contact, result.valid, truth.tau_ext, band),
+        "collision": contact_metrics(stamp, result.collision, result.valid, truth.tau_ext, band),
     })
     if result.tau_std is not None:
         inside = magnitude <= 1.96 * result.tau_std[rows]
@@ -129,7 +135,8 @@ CONTACT_TORQUE = 0.5     # N·m: a true external torque above this on any joint 
 SETTLE = 0.2             # s after a contact ends before motion counts as contact-free again
 
 
-def contact_metrics(stamp: np.ndarray, flag: np.ndarray, valid: np.ndarray, truth_tau: np.ndarray) -> dict[str, Any]:
+def contact_metrics(stamp: np.ndarray, flag: np.ndarray, valid: np.ndarray, truth_tau: np.ndarray,
+                    band: np.ndarray | None = None) -> dict[str, Any]:
     """metrics.json's contact figures of one observer's flag against the true external torque.
 
     Contact where any joint's true |τ_ext| exceeds CONTACT_TORQUE. ``false_contact_share``: the share
@@ -137,13 +144,19 @@ def contact_metrics(stamp: np.ndarray, flag: np.ndarray, valid: np.ndarray, trut
     flagged. Each onset (a sample in contact after one that is not) is detected when the flag rises
     before the contact ends; ``detection_delay`` (s) is from the onset to the first flagged sample,
     ``missed_onsets`` counts the others. None where the run has no such samples or onsets.
+
+    ``band`` (n,) N·m, the static friction band F_s (docs/method.md §4.11): a joint at rest holds any torque within
+    ±F_s, so a push is visible only once it exceeds that. ``detection_delay_from_band`` (s) is counted from the
+    first sample of each detected contact where some joint's true |τ_ext| exceeds max(F_s, CONTACT_TORQUE) (0 when
+    the flag rose earlier); ``within_band_onsets`` counts the contacts that never exceed it.
     """
     rows = valid & np.isfinite(truth_tau).all(axis=1)
     stamp, flag, touching = stamp[rows], flag[rows], (np.abs(truth_tau[rows]) > CONTACT_TORQUE).any(axis=1)
     last_touch = np.maximum.accumulate(np.where(touching, stamp, -np.inf))
     free = ~touching & (stamp - last_touch > SETTLE)
-    delays = []
-    missed = 0
+    beyond = None if band is None else (np.abs(truth_tau[rows]) > np.maximum(band, CONTACT_TORQUE)).any(axis=1)
+    delays, band_delays = [], []
+    missed = within_band = 0
     for onset in np.flatnonzero(touching[1:] & ~touching[:-1]) + 1:
         ends = np.flatnonzero(~touching[onset:])
         end = onset + (ends[0] if len(ends) else len(touching) - onset)
@@ -152,7 +165,16 @@ def contact_metrics(stamp: np.ndarray, flag: np.ndarray, valid: np.ndarray, trut
             delays.append(float(stamp[onset + flagged[0]] - stamp[onset]))
         else:
             missed += 1
-    return {"false_contact_share": _rounded(flag[free].mean()) if free.any() else None,
+        if beyond is not None:
+            visible = np.flatnonzero(beyond[onset:end])
+            if not len(visible):
+                within_band += 1
+            elif len(flagged):
+                band_delays.append(max(float(stamp[onset + flagged[0]] - stamp[onset + visible[0]]), 0.0))
+    band_figures = {} if band is None else {
+        "detection_delay_from_band": _rounded(np.array(band_delays)) if band_delays else None,
+        "within_band_onsets": within_band}
+    return {**band_figures,"false_contact_share": _rounded(flag[free].mean()) if free.any() else None,
             "contact_free_samples": int(free.sum()),
             "onsets": len(delays) + missed, "missed_onsets": missed,
             "detection_delay": _rounded(np.array(delays)) if delays else None,

@@ -25,6 +25,8 @@ VB_VARIANTS = ("paper", "huang", "smoothed", "window")
 MEASUREMENTS = ("momentum", "difference")
 TORQUE_SOURCES = ("effort_commands", "effort_commands_joint_state", "joint_states_effort")
 OUTPUT_QOS = ("reliable", "sensor_data")
+# How a joint's τ_m is measured; sets how wide ``kvark diagnose``'s priors are (gap/priors.py, docs/method.md §8).
+TORQUE_MEASUREMENTS = ("link_torque_sensor", "motor_current", "commanded_effort")
 # The VB readings each form of the filter implements (docs/method.md §4.5-4.6).
 VB_VARIANTS_BY_MEASUREMENT = {"momentum": ("paper", "smoothed", "window"), "difference": ("paper", "huang")}
 
@@ -132,6 +134,10 @@ KEYS: tuple[Key, ...] = (
          group="payload", attr="inertia"),
     _key("residual_model.model_dir", "text", None,
          "trained model directory written by kvark train (~/reload_model reloads it)", attr="model_dir"),
+    _key("robot_model.torque_measurement", "choice", "motor_current",
+         "how τ_m is measured, for kvark diagnose's priors: link_torque_sensor (Panda, KUKA iiwa), motor_current "
+         "(UR: gain × current) or commanded_effort (widest); default motor_current, what most ROS drivers' effort "
+         "is", choices=TORQUE_MEASUREMENTS, attr="torque_measurement"),
     _key("model_augmentation", "path", "",
          "augmentation.yaml of kvark diagnose for kvark train; at estimation it must be the model directory's copy ('' = that copy)"),
     _key("observer", "choice", "kvark", "observer name (README, Observers)", choices=OBSERVER_NAMES),

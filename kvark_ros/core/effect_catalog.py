@@ -42,8 +42,9 @@ class EffectEntry(NamedTuple):
     grid: the fixed settings the diagnosis tries, every combination (keys in this order);
     required: the settings an ``augmentation.yaml`` entry must give (a torque effect: at most one, the compiled
         kernel's second parameter);
-    prior: the field of ``gap.effects.Priors`` bounding |θ| ('' for none): at that bound the effect stands for
-        another one and the diagnosis drops it;
+    prior: what bounds |θ| ('' for none), derived per robot by ``gap.priors`` and scaled by how τ_m is measured:
+        at that bound the effect stands for another one and the diagnosis drops it (and warns when the data want it
+        beyond);
     help: what it is (θ's sign and units).
     """
 
@@ -61,25 +62,32 @@ class EffectEntry(NamedTuple):
 
 EFFECTS = (
     EffectEntry("coulomb_friction", TORQUE, ("coulomb",), nonnegative=True, friction=True,
-                grid={"epsilon": (0.02, 0.05, 0.1, 0.2)}, help="F_c tanh(q̇/ε), F_c ≥ 0 N·m; ε rad/s"),
+                grid={"epsilon": (0.02, 0.05, 0.1, 0.2)}, prior="share of the effort limit",
+                help="F_c tanh(q̇/ε), F_c ≥ 0 N·m; ε rad/s"),
     EffectEntry("viscous_friction", TORQUE, ("viscous",), nonnegative=True, friction=True,
+                prior="share of the effort limit at the velocity limit",
                 help="F_v q̇, F_v ≥ 0 N·m·s/rad"),
     EffectEntry("stribeck_friction", TORQUE, ("static_minus_coulomb",), nonnegative=True, friction=True,
                 grid={"stribeck_velocity": (0.03, 0.1, 0.3), "epsilon": (TANH_EPSILON,)},
-                required=("stribeck_velocity",), help="(F_s − F_c) exp(−(q̇/v_s)²) tanh(q̇/ε) ≥ 0 N·m; v_s rad/s"),
+                required=("stribeck_velocity",), prior="share of the effort limit",
+                help="(F_s − F_c) exp(−(q̇/v_s)²) tanh(q̇/ε) ≥ 0 N·m; v_s rad/s"),
     EffectEntry("armature", STRUCTURAL, ("armature",), nonnegative=True,
+                prior="effort limit × rotor acceleration time / velocity limit",
                 help="I_a q̈, I_a ≥ 0 kg·m²: rotor inertia on M's diagonal"),
-    EffectEntry("payload", STRUCTURAL, BODY_PARAMETERS, BODY,
+    EffectEntry("payload", STRUCTURAL, BODY_PARAMETERS, BODY, prior="mass the effort limits hold at the flange",
                 help="change of the flange link's inertial parameters (flange frame): a tool (m > 0) or a mismatch"),
-    EffectEntry("link_inertia", STRUCTURAL, BODY_PARAMETERS, BODY,
+    EffectEntry("link_inertia", STRUCTURAL, BODY_PARAMETERS, BODY, prior="share of each link's mass and moment",
                 help="changes of the other links' inertial parameters (joint frames): CAD errors"),
-    EffectEntry("drive_gain", TORQUE, ("gain_error_neg",), prior="max_gain_error",
+    EffectEntry("drive_gain", TORQUE, ("gain_error_neg",), prior="share per torque measurement (--max-gain-error)",
                 help="the drive applies g τ_m: gap (1 − g) τ_m, θ = 1 − g"),
-    EffectEntry("torque_offset", TORQUE, ("offset",), help="the drive applies τ_m + o: gap −o, θ = o N·m"),
+    EffectEntry("torque_offset", TORQUE, ("offset",), prior="share of the effort limit",
+                help="the drive applies τ_m + o: gap −o, θ = o N·m"),
     EffectEntry("position_ripple", TORQUE, ("sin_amplitude", "cos_amplitude"),
                 grid={"cycles_per_rev": (2, 3, 4, 6, 8, 12, 16, 24, 32, 50, 64, 100)}, required=("cycles_per_rev",),
-                help="the drive applies a sin(k q) + b cos(k q): gap −(a sin + b cos), N·m; k cycles per revolution"),
-    EffectEntry("joint_offset", STRUCTURAL, ("offset",), COUPLED, prior="max_joint_offset",
+                prior="share of the effort limit",
+                help="the drive applies a sin(k q) + b cos(k q): gap −(a sin + b cos), N·m; k cycles per "
+                     "revolution"),
+    EffectEntry("joint_offset", STRUCTURAL, ("offset",), COUPLED, prior="1° (--max-joint-offset)",
                 help="the encoder reads q + δ: gap −∂τ_EL/∂q δ (first order), δ rad"),
 )
 EFFECTS_BY_NAME = {entry.name: entry for entry in EFFECTS}

@@ -171,6 +171,10 @@ class EstimatorConfig:
     """frame a known payload attaches to. Allowed: a non-empty string."""
     model_dir: str
     """trained model directory written by kvark train (~/reload_model reloads it). Allowed: a non-empty string."""
+    torque_measurement: Literal["link_torque_sensor", "motor_current", "commanded_effort"] = "motor_current"
+    """how τ_m is measured, for kvark diagnose's priors: link_torque_sensor (Panda, KUKA iiwa), motor_current (UR: gain
+    × current) or commanded_effort (widest); default motor_current, what most ROS drivers' effort is. Allowed: one of
+    link_torque_sensor, motor_current, commanded_effort."""
     model_augmentation: str = ""
     """augmentation.yaml of kvark diagnose for kvark train; at estimation it must be the model directory's copy ('' =
     that copy). Allowed: a path, or '' for none."""

@@ -1,54 +1,81 @@
 """Physical admissibility of a ``kvark diagnose`` fit: bodies kept physically consistent by tightening their priors,
-drive gains and joint offsets kept off the bounds of theirs (docs/method.md §8). ROS-free helpers of ``gap.diagnose``.
+every effect kept off the bounds of its prior (``gap.priors``), and what the data want beyond a prior
+(docs/method.md §8). ROS-free helpers of ``gap.diagnose``.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from dataclasses import replace
+from typing import Callable, Sequence
 
 import numpy as np
 
-from kvark_ros.core.effect_catalog import PRIOR_BOUNDED
+from kvark_ros.core.effect_catalog import BODY_EFFECTS, EFFECTS_BY_NAME, PRIOR_BOUNDED
 from kvark_ros.core.estimation.payload import inertia_problem
 from kvark_ros.gap.effects import Priors, Term
 from kvark_ros.gap.fitting import Fitter
+from kvark_ros.gap.priors import FAR_BEYOND
 
 MAX_PRIOR_HALVINGS = 12  # a body's prior σ may shrink 4096-fold toward the URDF before the candidate is refused
+BOUND_SHARE = 0.01       # a parameter within 1 % of its prior's range from a bound is "at the bound"
+
+
+def prior_hits(term: Term, theta: np.ndarray, priors: Priors) -> np.ndarray:
+    """Which of a term's parameters θ sit at a bound of its prior (within ``BOUND_SHARE`` of the range); the
+    physical bounds (θ ≥ 0, the flange link's mass > 0) are not the prior's."""
+    lo, hi = term.bounds(priors)
+    if EFFECTS_BY_NAME[term.name].nonnegative or term.name == "payload":
+        lo = np.full_like(lo, -np.inf)
+    finite_lo, finite_hi = np.isfinite(lo), np.isfinite(hi)
+    span = np.where(finite_lo & finite_hi, hi - np.where(finite_lo, lo, 0.0), np.where(finite_hi, np.abs(hi), 0.0))
+    low = finite_lo & (theta <= np.where(finite_lo, lo, 0.0) + BOUND_SHARE * span)
+    high = finite_hi & (theta >= np.where(finite_hi, hi, 0.0) - BOUND_SHARE * span)
+    return low | high
 
 
 def at_bounds(term: Term, theta: np.ndarray, priors: Priors) -> np.ndarray:
-    """Which of a drive-gain or joint-offset term's joints sit at a bound of ``priors`` (within 1 %)."""
-    lo, hi = term.bounds(priors)
-    span = hi - lo
-    return (theta <= lo + 0.01 * span) | (theta >= hi - 0.01 * span)
+    """Per joint of a per-joint or coupled term (one value for a body term): whether any of its parameters sits at a
+    bound of its prior."""
+    hits = prior_hits(term, theta, priors)
+    if term.name in BODY_EFFECTS:
+        return np.array([bool(np.any(hits))])
+    return hits.reshape(len(term.joints), -1).any(axis=1)
+
+
+def _record(fitter: Fitter, term: Term, joints: Sequence[int]) -> None:
+    """Remember that ``term`` was dropped at its prior on ``joints`` (−1: a body term), for ``beyond_priors``."""
+    variant = tuple(sorted(term.variant.items()))
+    fitter.dropped.update((term.name, variant, j) for j in joints)
 
 
 def without_saturated(fitter: Fitter, terms: Sequence[Term], term: Term, *fit: np.ndarray) -> tuple:
-    """A drive-gain or joint-offset candidate (``PRIOR_BOUNDED``) without the joints whose θ sits at its prior's bound,
-    refitted (repeatedly, until none does).
+    """A per-joint or coupled candidate without the joints whose θ sits at its prior's bound, refitted (repeatedly,
+    until none does); the dropped joints are remembered (``beyond_priors``).
 
-    A gain or offset at the bound is another effect seen through τ_m or through gravity (on a light wrist joint
-    τ_m is mostly friction; a heavier link looks like an encoder offset); left in, it would stand for that
-    effect with an implausible value and hide real gains or offsets on the other joints."""
-    while term.name in PRIOR_BOUNDED:
+    An effect at the bound is another effect seen through it (a gain on a light wrist joint imitates friction, an
+    offset a link's CoM, a large low-order ripple or armature a link's inertia); left in, it would stand for that
+    effect with an implausible value and hide real ones on the other joints."""
+    while term.name in PRIOR_BOUNDED and term.name not in BODY_EFFECTS:
         pos = sum(t.size for t in terms)
         saturated = at_bounds(term, fit[0][pos:pos + term.size], fitter.priors)
         keep = tuple(j for j, bad in zip(term.joints, saturated) if not bad)
         if keep == term.joints or not keep:
             break
+        _record(fitter, term, [j for j in term.joints if j not in keep])
         term = Term(term.name, keep, term.variant)
         fit = fitter.fit([*terms, term])
     return term, fit
 
 
 def saturated_joints(fitter: Fitter, terms: Sequence[Term], theta: np.ndarray) -> tuple[int, tuple[int, ...]] | None:
-    """(term index, joints) of the first drive-gain or joint-offset term of a joint fit θ with joints at a bound of
-    its prior (``without_saturated``'s rule, for effects that reached the bound only when later ones joined)."""
+    """(term index, joints) of the first term of a joint fit θ with joints at a bound of its prior (a body term: all
+    of its joints); ``without_saturated``'s rule, for effects that reached the bound only when later ones joined."""
     pos = 0
     for index, term in enumerate(terms):
-        if term.name in PRIOR_BOUNDED:
-            bound = at_bounds(term, theta[pos:pos + term.size], fitter.priors)
-            if np.any(bound):
-                return index, tuple(j for j, hit in zip(term.joints, bound) if hit)
+        bound = at_bounds(term, theta[pos:pos + term.size], fitter.priors)
+        if np.any(bound):
+            joints = term.joints if term.name in BODY_EFFECTS else tuple(j for j, hit in zip(term.joints, bound) if hit)
+            _record(fitter, term, [-1] if term.name in BODY_EFFECTS else joints)
+            return index, joints
         pos += term.size
     return None
 
@@ -104,8 +131,8 @@ def consistent(fitter: Fitter, terms: Sequence[Term], *fit: np.ndarray) -> tuple
 def inadmissible(fitter: Fitter, terms: Sequence[Term], term: Term, theta: np.ndarray,
                  names: Sequence[str]) -> str | None:
     """Why a fitted candidate (added to ``terms``) is physically impossible, or None: every payload/tool and
-    link change must leave its body physically consistent; a drive gain or joint offset must not sit at its
-    prior's bound."""
+    link change must leave its body physically consistent and inside its prior; a per-joint effect must not sit at its
+    prior's bound on every joint."""
     pos = sum(t.size for t in terms)
     mine = theta[pos:pos + term.size]
     bad = bad_bodies(fitter, [*terms, term], theta)
@@ -113,6 +140,64 @@ def inadmissible(fitter: Fitter, terms: Sequence[Term], term: Term, theta: np.nd
         index, body, problem = bad[0]
         name = [*terms, term][index].name
         return f"{'flange link' if name == 'payload' else f'link of {names[body]}'}: {problem}"
-    if term.name in PRIOR_BOUNDED and np.all(at_bounds(term, mine, fitter.priors)):
-        return f"{term.name} at the bound of its prior on every joint"
+    hits = at_bounds(term, mine, fitter.priors)
+    if np.all(hits):
+        _record(fitter, term, [-1] if term.name in BODY_EFFECTS else term.joints)
+        return f"{term.name} at the bound of its prior{'' if term.name in BODY_EFFECTS else ' on every joint'}"
     return None
+
+
+def beyond_priors(fitter: Fitter, terms: Sequence[Term], gains: Callable[[np.ndarray, np.ndarray], np.ndarray]
+                  ) -> list[dict]:
+    """Effects the data want beyond their prior: every (effect, variant, joint) dropped at its prior during the
+    selection, refitted on top of the final ``terms`` with that effect's prior removed; kept when its value then lies
+    beyond the prior, the BIC improves and ``gains(before, after)`` (held-out gap per joint) names a joint. One record
+    per effect and joint, the largest held-out gain: effect, joint (−1: body), wanted |θ|, bound, their ratio,
+    held-out gap before/after of the joints it helps; a weaker record on the same joints goes to the stronger one's
+    ``look_alikes``."""
+    base = fitter.fit(list(terms))
+    k = sum(t.size for t in terms)
+    bic = fitter.bic(base[2], k)
+    before = np.sqrt(np.mean(np.square(base[3]), axis=0))
+    present = {(t.name, tuple(sorted(t.variant.items())), j) for t in terms for j in (
+        (-1,) if t.name in BODY_EFFECTS else t.joints)}
+    found: dict[tuple[str, int], dict] = {}
+    priors = fitter.priors
+    for name, variant, joint in sorted(fitter.dropped - present):
+        probe = Term(name, tuple(range(fitter.n)) if joint < 0 else (joint,), dict(variant))
+        limit = np.asarray(priors.limit(name), dtype=float)
+        fitter.priors = replace(priors, limits={**priors.limits, name: np.full_like(limit, np.inf)},
+                                max_gain_error=np.inf if name == "drive_gain" else priors.max_gain_error)
+        try:
+            theta, _, r_tr, r_he = fitter.fit([*terms, probe])
+        finally:
+            fitter.priors = priors
+        mine = theta[k:]
+        lo, hi = probe.bounds(priors)
+        over = np.maximum(mine - hi, -np.inf if EFFECTS_BY_NAME[name].nonnegative else lo - mine)
+        if name == "payload":
+            over = over[:1]
+        after = np.sqrt(np.mean(np.square(r_he), axis=0))
+        helped = gains(before, after)
+        if not np.any(over > 0.0) or len(helped) == 0 or fitter.bic(r_tr, k + probe.size) >= bic:
+            continue
+        worst = int(np.argmax(over))
+        record = {"effect": name, "variant": dict(variant), "joint": joint, "wanted": float(abs(mine[worst])),
+                  "bound": float(hi[worst]), "ratio": float(abs(mine[worst]) / hi[worst]),
+                  "joints_helped": [int(j) for j in helped],
+                  "held_out_before": before[helped].tolist(), "held_out_after": after[helped].tolist()}
+        gain = float(np.sum(before[helped] - after[helped]))
+        key = (name, joint)
+        if key not in found or gain > found[key]["_gain"]:
+            found[key] = {**record, "_gain": gain}
+    # The best plausible explanation of a joint's gap first (within FAR_BEYOND of its prior, then the largest gain); a
+    # weaker one on the same joints is its look-alike.
+    kept: list[dict] = []
+    for record in sorted(found.values(), key=lambda item: (item["ratio"] > FAR_BEYOND, -item["_gain"])):
+        record.pop("_gain")
+        better = next((other for other in kept if set(record["joints_helped"]) <= set(other["joints_helped"])), None)
+        if better is None:
+            kept.append({**record, "look_alikes": []})
+        else:
+            better["look_alikes"].append(record)
+    return kept

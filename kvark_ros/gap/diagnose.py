@@ -5,8 +5,8 @@
 2. greedy forward selection over the named effects of ``kvark_ros.gap.effects``: samples are split
    in time (the last ``holdout`` share of every recording is held out); each round every
    (effect, joint set) candidate is fitted on the training part by bounded least squares within the
-   priors (positive friction and armature, drive gain and joint offset within ``Priors``, payload and
-   link changes with Gaussian priors toward the URDF and kept physically consistent), the one that
+   priors (every effect within its prior scaled to the robot, ``gap.priors``; payload and link changes
+   also with Gaussian priors toward the URDF and kept physically consistent), the one that
    lowers the held-out gap most is
    accepted when the BIC improves and the held-out gap of the affected joints drops by at least
    ``MIN_REDUCTION``; the search stops when no candidate is accepted. A backward pass then
@@ -23,8 +23,10 @@
    is accepted. Each remaining effect's reported reduction is the held-out gap of all effects but that
    one against all of them;
 3. refits the final set under the chosen start's priors until every link it changes is physically
-   consistent, drops the drive-gain and joint-offset joints that the joint fit put at a bound of their
-   prior (another effect seen through them, as at acceptance), and writes
+   consistent, drops the joints (bodies) that the joint fit put at a bound of their prior (another effect
+   seen through them, as at acceptance); against a calibrated model prefers a payload to link changes that
+   explain no more (``payload_first``); names what the data want beyond a prior (``admissible.beyond_priors``)
+   and the flag that allows it; and writes
    ``diagnosis.json``, ``augmentation.yaml`` (the accepted effects, loadable by
    ``effects.augmentation_gap``; against an augmented model, its effects first), ``report.md`` and plots
    (``gap.diagnosis_report``), with the warnings, look-alikes and raw-signal gap of ``gap.plausibility``.
@@ -46,6 +48,7 @@ from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.core.estimation.linalg import single_threaded_blas
 from kvark_ros.core.estimation.model_store import TrainedModel, save_model
 from kvark_ros.core.files import check_output, staged_directory
+from kvark_ros.core.hints import did_you_mean
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.learning.training import SAVGOL_WINDOW, smoothed_signals, train_model
 from kvark_ros.core.estimation.robot_model import flange_link_parameters
@@ -60,11 +63,20 @@ from kvark_ros.gap.effects import (
     signals,
     variants,
 )
-from kvark_ros.gap.admissible import bad_bodies, consistent, inadmissible, saturated_joints, without_saturated
+from kvark_ros.gap.admissible import (
+    bad_bodies,
+    beyond_priors,
+    consistent,
+    inadmissible,
+    saturated_joints,
+    without_saturated,
+)
 from kvark_ros.gap.diagnosis_report import Diagnosis, write_outputs
 from kvark_ros.gap.fitting import Fitter
+from kvark_ros.gap.priors import FLAGS, MEASUREMENT_WIDTHS, UNITS, robot_priors
 from kvark_ros.gap.plausibility import (
     RAW_QDD_WINDOW,
+    beyond_prior_warning,
     flange_change,
     flange_mass_regrouping,
     look_alikes,
@@ -305,13 +317,30 @@ def diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: fl
              effects: Sequence[str] = EFFECT_NAMES, log: Callable[[str], None] = print,
              priors: Priors | None = None) -> Diagnosis:
     """Greedy selection of named effects explaining the gap (see module docstring), within ``priors``
-    (default ``Priors()`` with the flange link's mass of ``robot``; ``priors.payload_com`` fixes the payload's
-    centre of mass)."""
+    (default ``Priors()``; completed with the flange link's mass of ``robot`` and every effect's bounds derived from
+    its URDF, ``gap.priors.robot_priors``; ``priors.payload_com`` fixes the payload's centre of mass)."""
     priors = priors or Priors()
     flange = flange_link_parameters(robot.model, robot.flange_frame_id)
-    priors = replace(priors, flange_mass=float(flange[0]))
+    priors = robot_priors(robot, replace(priors, flange_mass=float(flange[0])))
     with single_threaded_blas():  # hundreds of small least-squares fits
         return _diagnose(robot, segments, holdout, effects, log, priors)
+
+
+def body_fitter(robot: RobotModel, train: Signals, held: Signals, priors: Priors) -> Fitter:
+    """The Fitter of a diagnosis: rows weighted by 1/max(training gap RMSE, 0.01 N·m), the URDF's bodies and the
+    Gaussian priors of payload and link_inertia (docs/method.md §8.3)."""
+    fitter = Fitter(train, held, 1.0 / np.maximum(_rmse(train.gap), 0.01), priors)
+    fitter.flange = flange_link_parameters(robot.model, robot.flange_frame_id)
+    fitter.flange_map = flange_parameter_map(robot)[1]
+    link_scale = link_prior_scale(robot)
+    flange_moment = float(np.max(np.abs(fitter.flange[[4, 6, 9]])))
+    # payload: free (a tool of any mass, CoM and inertia); only if the flange link comes out inconsistent do its
+    # second moments get a prior, first 30 % of the flange link's largest moment (as link_inertia's), then halved.
+    fitter.prior_scale = {"link_inertia": link_scale, "payload": np.full(10, np.inf)}
+    fitter.first_prior = {"link_inertia": link_scale, "payload": np.concatenate(
+        [np.full(4, np.inf), np.full(6, LINK_PRIOR["inertia"] * flange_moment)])}
+    fitter.links = [robot.model.inertias[i].toDynamicParameters() for i in range(1, robot.n)]
+    return fitter
 
 
 def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float,
@@ -327,18 +356,7 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
     log(f"[diagnose] {len(train)} training and {len(held)} held-out samples "
         f"(every {DECIMATE_DT * 1e3:.0f} ms, last {holdout:.0%} of each recording held out)")
     gap_before = _rmse(held.gap)
-    weights = 1.0 / np.maximum(_rmse(train.gap), 0.01)
-    fitter = Fitter(train, held, weights, priors)
-    fitter.flange = flange_link_parameters(robot.model, robot.flange_frame_id)
-    fitter.flange_map = flange_parameter_map(robot)[1]
-    link_scale = link_prior_scale(robot)
-    flange_moment = float(np.max(np.abs(fitter.flange[[4, 6, 9]])))
-    # payload: free (a tool of any mass, CoM and inertia); only if the flange link comes out inconsistent do its
-    # second moments get a prior, first 30 % of the flange link's largest moment (as link_inertia's), then halved.
-    fitter.prior_scale = {"link_inertia": link_scale, "payload": np.full(10, np.inf)}
-    fitter.first_prior = {"link_inertia": link_scale, "payload": np.concatenate(
-        [np.full(4, np.inf), np.full(6, LINK_PRIOR["inertia"] * flange_moment)])}
-    fitter.links = [robot.model.inertias[i].toDynamicParameters() for i in range(1, n)]
+    fitter = body_fitter(robot, train, held, priors)
     log(f"[diagnose] held-out gap per joint before (N·m): {_per_joint(gap_before, robot.joint_names)}")
     log(f"[diagnose] fitting each of {len(effects)} effects alone (shared by the {STARTS} starts) ...")
     best, best_priors = None, None
@@ -370,6 +388,11 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
             f"once fitted with the other effects (another effect seen through it)")
         terms = [*terms[:index], *([Term(term.name, keep, term.variant)] if keep else []), *terms[index + 1:]]
         theta, cov, _, r_he = consistent(fitter, terms, *fitter.fit(terms))
+    if robot.augmentation is not None and "payload" in effects:
+        terms, (theta, cov, _, r_he) = payload_first(fitter, terms, (theta, cov, _, r_he), robot.joint_names, log)
+    beyond = beyond_priors(fitter, terms, _affected)
+    for record in beyond:
+        log(f"[diagnose] beyond its prior: {beyond_prior_warning(record, priors, robot.joint_names)}")
     history = _contributions(fitter, terms, r_he)
     gap_after = _rmse(r_he)
     result_effects, thetas = [], []
@@ -394,9 +417,10 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         "gap_filtering": f"τ_m and q̇ through a {SAVGOL_WINDOW * 1e3:.0f} ms Savitzky-Golay filter (as kvark train)",
         "gap_raw": raw_gap(robot, segments, holdout, terms, theta_split(terms, theta)),
         "effects": result_effects,
-        "priors": {"max_gain_error": priors.max_gain_error, "max_joint_offset_deg": float(np.degrees(
-            priors.max_joint_offset)), "flange_mass": priors.flange_mass},
-        "warnings": plausibility_warnings(terms, theta_split(terms, theta), priors, robot.joint_names),
+        "priors": _priors_in_force(priors),
+        "beyond_priors": beyond,
+        "warnings": [*plausibility_warnings(terms, theta_split(terms, theta), priors, robot.joint_names),
+                     *(beyond_prior_warning(record, priors, robot.joint_names) for record in beyond)],
         "look_alikes": look_alikes({t.name: fitter.design(t)[0] for t in terms},
                                    {name: fitter.design(Term(name, tuple(range(n)), variants(name, priors)[0]))[0]
                                     for name in effects}, fitter.w),
@@ -412,6 +436,43 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
     for warning in result["warnings"]:
         log(f"[diagnose] warning: {warning}")
     return Diagnosis(result, terms, thetas, held, r_he, DECIMATE_DT)
+
+
+def payload_first(fitter: Fitter, terms: list[Term], fit: tuple, names: Sequence[str],
+                   log: Callable[[str], None]) -> tuple[list[Term], tuple]:
+    """Against a calibrated model: link_inertia replaced by a payload when the payload explains the held-out gap as
+    well (no joint worse by ``MIN_REDUCTION`` and ``MIN_ABS_REDUCTION``) and is admissible. A new load on a calibrated
+    robot is one body at the flange (10 parameters, its mass the identifiable combination with the link before it,
+    ``plausibility.flange_mass_regrouping``), not changes of every link."""
+    if "link_inertia" not in [t.name for t in terms] or "payload" in [t.name for t in terms]:
+        return terms, fit
+    index = [t.name for t in terms].index("link_inertia")
+    payload = Term("payload", tuple(range(fitter.n)), variants("payload", fitter.priors)[0])
+    rest = [t for i, t in enumerate(terms) if i != index]
+    saved = dict(fitter.prior_scale)
+    alternative = consistent(fitter, [*rest, payload], *fitter.fit([*rest, payload]))
+    worse = _affected(_rmse(alternative[3]), _rmse(fit[3]))      # joints link_inertia explains better
+    if len(worse) or inadmissible(fitter, rest, payload, alternative[0], names) is not None:
+        fitter.prior_scale = saved
+        return terms, fit
+    log(f"[diagnose] against a calibrated model: payload instead of link_inertia (the same held-out gap within "
+        f"{MIN_REDUCTION:.0%}; one body at the flange is the simpler explanation of a new load)")
+    return [*rest, payload], alternative
+
+
+def _priors_in_force(priors: Priors) -> dict:
+    """Every effect's prior for ``diagnosis.json`` and the report: bound per joint (link_inertia per link: mass;
+    payload: its mass), unit and source."""
+    effects = {}
+    for name, limit in priors.limits.items():
+        values = np.asarray(limit, dtype=float)
+        if name == "link_inertia":
+            values = values.reshape(-1, 10)[:, 0]
+        effects[name] = {"bound": [float(v) if np.isfinite(v) else None for v in values.reshape(-1)],
+                         "unit": UNITS[name], "source": priors.sources.get(name, "")}
+    return {"torque_measurement": priors.torque_measurement, "max_gain_error": priors.gain_bound,
+            "max_joint_offset_deg": float(np.degrees(priors.max_joint_offset)), "flange_mass": priors.flange_mass,
+            "effects": effects}
 
 
 def train_on_diagnosis(config: EstimatorConfig, robot: RobotModel, segments: Sequence[EstimatorInputs], out: Path,
@@ -458,12 +519,15 @@ def add_parser(subparsers: SubParsers) -> None:
                              "are fitted")
     parser.add_argument("--effects", type=_effect_list, default=EFFECT_NAMES, metavar="A,B",
                         help=f"restrict the library to these effects (default all: {','.join(EFFECT_NAMES)})")
-    parser.add_argument("--max-gain-error", type=float, default=Priors.max_gain_error, metavar="X",
-                        help="prior of drive_gain: |1 − g| ≤ X (default 0.1; torque-sensing and calibrated "
-                             "current-based drives)")
+    parser.add_argument("--max-gain-error", type=float, default=None, metavar="X",
+                        help="prior of drive_gain: |1 − g| ≤ X (default from robot_model.torque_measurement: "
+                             + ", ".join(f"{w['gain']:g} {m}" for m, w in MEASUREMENT_WIDTHS.items()) + ")")
     parser.add_argument("--max-joint-offset", type=float, default=float(np.degrees(Priors.max_joint_offset)),
                         metavar="DEG",
                         help="prior of joint_offset: |δ| ≤ DEG degrees (default 1; absolute encoders)")
+    parser.add_argument("--prior", type=_prior_scale, action="append", default=[], metavar="EFFECT=FACTOR",
+                        help="scale EFFECT's prior (derived from the URDF and robot_model.torque_measurement, "
+                             "docs/method.md §8.6) by FACTOR, e.g. armature=2; repeatable")
     parser.add_argument("--no-plots", action="store_true", help="do not write plots")
     parser.set_defaults(run=run)
 
@@ -476,6 +540,23 @@ def _com(text: str) -> tuple[float, float, float]:
     if len(values) != 3 or not all(np.isfinite(values)):
         raise argparse.ArgumentTypeError(f"expected three finite numbers X,Y,Z in metres, got {text!r}")
     return values
+
+
+def _prior_scale(text: str) -> tuple[str, float]:
+    name, _, value = text.partition("=")
+    name = name.strip()
+    if name in FLAGS:
+        raise argparse.ArgumentTypeError(f"{name}'s prior has its own flag: {FLAGS[name]}")
+    if name not in EFFECT_NAMES:
+        raise argparse.ArgumentTypeError(f"unknown effect {name!r}{did_you_mean(name, EFFECT_NAMES)}; known: "
+                                         f"{','.join(EFFECT_NAMES)}")
+    try:
+        factor = float(value)
+    except ValueError:
+        factor = float("nan")
+    if not (np.isfinite(factor) and factor > 0):
+        raise argparse.ArgumentTypeError(f"expected EFFECT=FACTOR with a positive FACTOR, got {text!r}")
+    return name, factor
 
 
 def _effect_list(text: str) -> tuple[str, ...]:
@@ -499,10 +580,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"[diagnose] URDF {config.urdf}", flush=True)
     segments = load_recordings(args.bags, config, "diagnose", tuple(args.trim), args.rate)
     log = lambda line: print(line, flush=True)   # noqa: E731
-    if args.max_gain_error <= 0 or args.max_joint_offset <= 0:
+    if (args.max_gain_error is not None and args.max_gain_error <= 0) or args.max_joint_offset <= 0:
         raise ConfigError("--max-gain-error and --max-joint-offset must be positive")
     priors = Priors(max_gain_error=args.max_gain_error, max_joint_offset=float(np.radians(args.max_joint_offset)),
-                    payload_com=args.payload_com)
+                    payload_com=args.payload_com, torque_measurement=config.torque_measurement,
+                    scale=tuple(dict(args.prior).items()))
     diag = diagnose(robot, segments, args.holdout, effects=args.effects, log=log, priors=priors)
     out = Path(args.out)
     with staged_directory(out, args.force) as staging:

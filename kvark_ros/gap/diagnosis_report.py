@@ -44,11 +44,10 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
         raw_cells = f"{raw['before'][j]:.4f} | {raw['after'][j]:.4f}" if raw["before"] else "– | –"
         lines.append(f"| {name} | {b:.4f} | {a:.4f} | {1 - a / b if b > 0 else 0:.0%} | {raw_cells} |")
     lines += [f"| mean | {r['gap_before']['joint_rmse_mean']:.4f} | {r['gap_after']['joint_rmse_mean']:.4f} | | "
-              f"{raw['before_mean']:.4f} | {raw['after_mean']:.4f} |", "",
-              f"Priors: drive gain within ±{r['priors']['max_gain_error']:.0%}, joint offset within "
-              f"±{r['priors']['max_joint_offset_deg']:.1f}°, the flange link ({r['priors']['flange_mass']:.3f} kg in "
-              "the URDF) and the other links physically consistent.", "", "## Warnings", ""]
-    lines += [f"- {warning}" for warning in r["warnings"]] or ["None: no parameter sits at a bound of its prior."]
+              f"{raw['before_mean']:.4f} | {raw['after_mean']:.4f} |", "", *_priors_table(r["priors"]), "",
+              "## Warnings", ""]
+    lines += [f"- {warning}" for warning in r["warnings"]] or [
+        "None: no parameter sits at a bound of its prior, and no effect wants a value beyond it."]
     lines += ["", "## Look-alikes", "",
               "Effects whose regressors are nearly collinear on this motion (cosine of the smallest principal angle "
               "≥ 0.95): the data alone do not tell them apart; the accepted one won on BIC, held-out gap and priors.",
@@ -81,6 +80,25 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
                  if r["effects"] else "")
               + "`residual_vs_velocity.png` and `residual_vs_position.png` (the gap against q̇ and q).", ""]
     return "\n".join(lines)
+
+
+def _priors_table(priors: dict) -> list[str]:
+    """The priors in force (``diagnose._priors_in_force``): one row per effect, its bound per joint and its source."""
+    lines = [f"## Priors ({priors['torque_measurement']})", "",
+             "Every effect is bounded by a plausible range from the URDF and how τ_m is measured (docs/method.md "
+             "§8.6); an effect at its bound is dropped, and a warning says when the data want it beyond. Bounds per "
+             "joint (link_inertia: mass per link; payload: its mass). The flange link "
+             f"({priors['flange_mass']:.3f} kg in the URDF) and the other links stay physically consistent.", "",
+             "| effect | bound | unit | source |", "|---|---|---|---|"]
+    for name, entry in priors.get("effects", {}).items():
+        values = ", ".join("open" if v is None else f"{v:.3g}" for v in entry["bound"])
+        if name == "drive_gain":
+            values = f"{entry['bound'][0]:.3g} on every joint"
+        elif name == "joint_offset":
+            values = f"{priors['max_joint_offset_deg']:.1f}° on every joint"
+        unit = "°" if name == "joint_offset" else entry["unit"]
+        lines.append(f"| {name} | {values} | {unit} | {entry['source']} |")
+    return lines
 
 
 def augmentation(diag: Diagnosis, robot: RobotModel, robot_name: str = "") -> dict:

@@ -39,6 +39,7 @@ import pinocchio as pin
 from kvark_ros.core.effect_catalog import EFFECT_NAMES, EFFECTS_BY_NAME, PER_JOINT  # noqa: F401
 from kvark_ros.core.estimation.augmentation import joint_columns
 from kvark_ros.core.estimation.robot_model import RobotModel
+from kvark_ros.gap.priors import MEASUREMENT_WIDTHS
 
 MIN_MASS = 1e-3                               # kg, smallest total mass of the flange's link
 # Prior standard deviations of link_inertia (CAD-like errors): mass 20 % of the link's, first moment
@@ -48,23 +49,44 @@ LINK_PRIOR = {"mass": 0.2, "com_m": 0.03, "first_moment": 0.2, "inertia": 0.3}
 
 @dataclass(frozen=True)
 class Priors:
-    """Plausible ranges the fit is bounded to (docs/method.md §8); a parameter at one of them is a warning.
+    """Plausible ranges the fit is bounded to (``gap.priors``, docs/method.md §8.6); a parameter at one of them is
+    dropped, and a warning when the data want it beyond.
 
-    max_gain_error: |1 − g| of drive_gain. 0.1 by default: torque-sensing joints (Panda, KUKA) measure the
-        link-side torque and current-based drives (UR) are calibrated within a few per cent; a gain
-        further off is another effect (payload, inertia) seen through τ_m.
+    max_gain_error: |1 − g| of drive_gain; None: the share of ``torque_measurement`` (``gap.priors``).
     max_joint_offset: |δ| of joint_offset, rad. 1° by default: absolute encoders are calibrated at the
         factory; a larger offset is a gravity-like effect (link mass, CoM) in disguise.
     flange_mass: the URDF's mass of the flange's link with what is fixed to it (kg); a tool mismatch can
         remove at most that.
     payload_com: a payload's known centre of mass (flange frame, m): only its mass and inertia are fitted.
-    An effect's ``prior`` in ``core.effect_catalog`` names the field that bounds its |θ|.
+    torque_measurement: how τ_m is measured (``robot_model.torque_measurement``): the priors' width.
+    scale: (effect, factor) pairs of ``--prior EFFECT=FACTOR``, each effect's derived bounds times the factor.
+    limits: |θ| bound per effect (per joint; link_inertia 10 per link; payload its mass), from
+        ``gap.priors.robot_priors``; an effect without one is bounded only by ``max_gain_error`` /
+        ``max_joint_offset`` (drive gain, joint offset) or not at all.
+    sources: where each bound comes from, for the report.
     """
 
-    max_gain_error: float = 0.1
+    max_gain_error: float | None = None
     max_joint_offset: float = float(np.radians(1.0))
     flange_mass: float = 0.0
     payload_com: tuple[float, float, float] | None = None
+    torque_measurement: str = "motor_current"
+    scale: tuple[tuple[str, float], ...] = ()
+    limits: Mapping[str, np.ndarray] = field(default_factory=dict)
+    sources: Mapping[str, str] = field(default_factory=dict)
+
+    @property
+    def gain_bound(self) -> float:
+        """|1 − g| of drive_gain: ``max_gain_error``, else the torque measurement's share."""
+        if self.max_gain_error is not None:
+            return self.max_gain_error
+        return MEASUREMENT_WIDTHS[self.torque_measurement]["gain"]
+
+    def limit(self, name: str) -> np.ndarray | float | None:
+        """The |θ| bound of effect ``name`` (an array from ``limits``, a scalar for every joint), or None."""
+        if name in self.limits:
+            return self.limits[name]
+        return {"drive_gain": self.gain_bound, "joint_offset": self.max_joint_offset}.get(name)
 
 
 @dataclass(frozen=True, eq=False)
@@ -189,16 +211,26 @@ class Term:
         return np.concatenate([[theta[0]], theta[0] * com, theta[1:]])
 
     def bounds(self, priors: Priors) -> tuple[np.ndarray, np.ndarray]:
-        """Lower and upper bounds of θ (size,) under ``priors``."""
+        """Lower and upper bounds of θ (size,) under ``priors``: the physical ones (θ ≥ 0, the flange link's mass
+        > 0) and the priors' |θ| ≤ bound (drive_gain: θ = 1 − g)."""
         lo, hi = np.full(self.size, -np.inf), np.full(self.size, np.inf)
         entry = EFFECTS_BY_NAME[self.name]
         if entry.nonnegative:
             lo[:] = 0.0
-        elif self.name == "payload":      # the link's total mass stays positive
+        limit = priors.limit(self.name)
+        if self.name == "payload":        # the link's total mass stays positive, a payload within the prior's mass
             lo[0] = MIN_MASS - priors.flange_mass
-        elif entry.prior:                 # |θ| ≤ the prior's bound (drive_gain: θ = 1 − g)
-            bound = getattr(priors, entry.prior)
-            lo[:], hi[:] = -bound, bound
+            if limit is not None:
+                hi[0] = float(np.asarray(limit).reshape(-1)[0])
+        elif self.name == "link_inertia":
+            if limit is not None:
+                hi = np.asarray(limit, dtype=float).copy()
+                lo = -hi
+        elif limit is not None:
+            per_joint = np.asarray(limit, dtype=float)
+            values = per_joint[list(self.joints)] if per_joint.ndim else np.full(len(self.joints), float(per_joint))
+            hi = np.repeat(values, len(self.per_joint_parameters))
+            lo = np.zeros_like(hi) if entry.nonnegative else -hi
         return lo, hi
 
     def design(self, s: Signals) -> np.ndarray:

@@ -20,6 +20,7 @@ class Fitter:
         self.flange = np.zeros(10)                      # URDF parameters of the flange link (joint frame)
         self.flange_map = np.eye(10)                    # flange frame → that joint frame (payload θ)
         self.links: list[np.ndarray] = []               # URDF parameters of the other links (joint frames)
+        self.dropped: set[tuple[str, tuple, int]] = set()  # (effect, variant, joint or −1) dropped at its prior
         self.t, self.n = train.gap.shape
         self._cache: dict = {}
 

@@ -1,8 +1,8 @@
 """What a diagnosis says beyond its fit: implausible parameters, the tool change, the gap on raw torque.
 
-* ``plausibility_warnings``: every parameter at a bound of its prior (drive gain, joint offset, the flange
-  link's mass) is named, because the data wanted more than physics allows and another effect is probably
-  hiding behind it;
+* ``plausibility_warnings``: every parameter at a bound of its prior (``gap.priors``) is named with the flag that
+  widens it, because the data wanted more than physics allows and another effect is probably hiding behind it;
+  ``beyond_prior_warning``: an effect dropped at its prior that the data want beyond it (``admissible.beyond_priors``);
 * ``flange_change``: the payload effect as what it is physically: an unmodelled tool or payload (the flange
   link heavier than in the URDF) or a tool mismatch (lighter: the URDF's tool is not what the robot carries);
 * ``flange_mass_regrouping``: whether the data can tell the flange link's mass from the link before it (on a
@@ -21,11 +21,12 @@ from scipy.signal import savgol_filter
 from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.core.estimation.payload import inertia_problem
 from kvark_ros.core.estimation.robot_model import RobotModel
+from kvark_ros.gap.admissible import BOUND_SHARE, prior_hits
 from kvark_ros.gap.effects import Priors, Signals, Term, signals
+from kvark_ros.gap.priors import FAR_BEYOND, UNITS, suggested_flag
 
 REGROUPED = 1e-6         # relative residual below which the flange mass is a combination of the previous link's
 RAW_QDD_WINDOW = 0.05    # s: q̈ from a 50 ms Savitzky-Golay derivative of q̇; τ_m not filtered at all
-BOUND_SHARE = 0.01       # a parameter within 1 % of its prior's range from a bound is "at the bound"
 
 
 def theta_split(terms: Sequence[Term], theta: np.ndarray) -> list[np.ndarray]:
@@ -34,32 +35,89 @@ def theta_split(terms: Sequence[Term], theta: np.ndarray) -> list[np.ndarray]:
     return [theta[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
 
 
+def _value(name: str, theta: np.ndarray) -> str:
+    """A per-joint effect's parameters (θ of one joint) as the report states them."""
+    if name == "drive_gain":
+        return f"g = {1.0 - theta[0]:.3f}"
+    if name == "joint_offset":
+        return f"{np.degrees(theta[0]):.2f}°"
+    if name == "position_ripple":
+        return f"amplitude {np.hypot(theta[0], theta[1]):.3g} N·m"
+    return f"{theta[0]:.3g} {UNITS[name]}"
+
+
+def _bound(name: str, bound: float) -> str:
+    """A prior's bound as the report states it."""
+    if name == "drive_gain":
+        return f"±{bound:.0%}"
+    if name == "joint_offset":
+        return f"±{np.degrees(bound):.1f}°"
+    return f"{bound:.3g} {UNITS[name]}"
+
+
+def _flag(name: str, wanted: float, bound: float) -> str:
+    return suggested_flag(name, wanted, bound) if np.isfinite(bound) and bound > 0 else f"--prior {name}=FACTOR"
+
+
 def plausibility_warnings(terms: Sequence[Term], thetas: Sequence[np.ndarray], priors: Priors,
                           joint_names: Sequence[str]) -> list[str]:
-    """One sentence per parameter at a bound of its prior (``Priors``)."""
+    """One sentence per parameter at a bound of its prior (``Priors``), with the flag that widens it."""
     warnings = []
     for term, theta in zip(terms, thetas):
         lo, hi = term.bounds(priors)
-        finite = np.isfinite(lo) & np.isfinite(hi)
-        span = np.where(finite, np.where(finite, hi, 0.0) - np.where(finite, lo, 0.0), np.abs(np.where(
-            np.isfinite(lo), lo, 0.0)) + 1.0)      # one-sided bound: 1 % of |bound| + 1 in the parameter's unit
-        at_low = np.isfinite(lo) & (theta <= np.where(np.isfinite(lo), lo, 0.0) + BOUND_SHARE * span)
-        at_high = np.isfinite(hi) & (theta >= np.where(np.isfinite(hi), hi, 0.0) - BOUND_SHARE * span)
-        if term.name == "drive_gain":
-            for j, value, low, high in zip(term.joints, theta, at_low, at_high):
-                if low or high:
-                    warnings.append(f"drive_gain of {joint_names[j]} is {1.0 - value:.3f}, at the bound of its prior "
-                                    f"(±{priors.max_gain_error:.0%}): another effect is seen through τ_m")
-        elif term.name == "joint_offset":
-            for j, value, low, high in zip(term.joints, theta, at_low, at_high):
-                if low or high:
-                    warnings.append(f"joint_offset of {joint_names[j]} is {np.degrees(value):.2f}°, at the bound of "
-                                    f"its prior (±{np.degrees(priors.max_joint_offset):.1f}°): probably a link's "
-                                    "mass or centre of mass, not the encoder")
-        elif term.name == "payload" and at_low[0]:
-            warnings.append(f"the flange link's mass change {theta[0]:.3f} kg removes all of its "
-                            f"{priors.flange_mass:.3f} kg: the URDF's tool and link mass cannot explain the data")
+        hits = prior_hits(term, theta, priors)
+        if term.name == "payload":
+            if theta[0] <= lo[0] + BOUND_SHARE * (abs(lo[0]) + 1.0):
+                warnings.append(f"the flange link's mass change {theta[0]:.3f} kg removes all of its "
+                                f"{priors.flange_mass:.3f} kg: the URDF's tool and link mass cannot explain the data")
+            if hits[0]:
+                warnings.append(f"the payload's mass {theta[0]:.3f} kg is at the bound of its prior ({hi[0]:.2f} kg: "
+                                f"{priors.sources.get('payload', 'prior')}); if the robot really carries that much, "
+                                f"pass {_flag('payload', theta[0], hi[0])}")
+        elif term.name == "link_inertia":
+            for link in np.flatnonzero(hits.reshape(-1, 10).any(axis=1)):
+                warnings.append(f"the link moved by {joint_names[link]} changes at the bound of its prior "
+                                f"({priors.sources.get('link_inertia', 'prior')}): pass --prior link_inertia=FACTOR "
+                                "if its URDF is that far off")
+        else:
+            width = len(term.per_joint_parameters)
+            for i, j in enumerate(term.joints):
+                mine = theta[i * width:(i + 1) * width]
+                if hits[i * width:(i + 1) * width].any():
+                    bound = float(hi[i * width])
+                    wanted = float(np.max(np.abs(mine)))
+                    warnings.append(f"{term.name} of {joint_names[j]} is {_value(term.name, mine)}, at the bound of "
+                                    f"its prior ({_bound(term.name, bound)}): another effect is probably seen "
+                                    f"through it; if it is real, pass {_flag(term.name, wanted, bound)}")
     return warnings
+
+
+def beyond_prior_warning(record: dict, priors: Priors, joint_names: Sequence[str]) -> str:
+    """The sentence of one ``admissible.beyond_priors`` record: which effect wants which value beyond which prior, what
+    it would explain, the flag that allows it."""
+    name, bound, wanted = record["effect"], record["bound"], record["wanted"]
+    where = "" if record["joint"] < 0 else f" on {joint_names[record['joint']]}"
+    if name == "drive_gain":
+        want = f"|1 − g| ≈ {wanted:.3f}"
+    elif name == "joint_offset":
+        want = f"|δ| ≈ {np.degrees(wanted):.2f}°"
+    else:
+        want = f"{wanted:.3g} {UNITS[name]}"
+    helped = ", ".join(f"{joint_names[j]} {b:.3f} → {a:.3f}" for j, b, a in zip(
+        record["joints_helped"], record["held_out_before"], record["held_out_after"]))
+    weaker = "; ".join(f"{other['effect']} ({other['wanted']:.3g} {UNITS[other['effect']]} against "
+                       f"{_bound(other['effect'], other['bound'])}, gap → "
+                       f"{', '.join(f'{a:.3f}' for a in other['held_out_after'])})"
+                       for other in record.get("look_alikes", []))
+    if record["ratio"] > FAR_BEYOND:
+        return (f"the gap{where} follows {name} with {want}, {record['ratio']:.1f}× its prior {_bound(name, bound)}: "
+                f"not a plausible {name} (it would cut the held-out gap (N·m) of {helped}); an effect the library "
+                "lacks is seen through it" + (f". Weaker look-alikes beyond their priors: {weaker}" if weaker else ""))
+    return (f"{name}{where} needs {want}, beyond its prior {_bound(name, bound)} "
+            f"({priors.sources.get(name, 'prior')}); it would cut the held-out gap (N·m) of {helped}. "
+            + (f"Weaker look-alikes, beyond their priors too: {weaker}. " if weaker else "")
+            + "Not accepted, and no look-alike outside its own prior stands in for it: if the value is physical, "
+            f"pass {_flag(name, wanted, bound)}; otherwise an effect the library lacks is seen through it")
 
 
 def flange_change(flange: np.ndarray, flange_map: np.ndarray, theta: np.ndarray) -> dict:

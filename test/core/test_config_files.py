@@ -159,3 +159,21 @@ def test_the_documented_table_of_keys_is_replaced_whole_and_a_document_without_o
     assert document_with_keys_table(fresh) == fresh
     with pytest.raises(ValueError, match="no table of keys"):
         document_with_keys_table("intro\n")
+
+
+@pytest.mark.parametrize("value", ["link_torque_sensor", "motor_current", "commanded_effort"])
+def test_torque_measurement_takes_its_three_values(tmp_path, value):
+    parameters = base_parameters()
+    parameters["robot_model"]["torque_measurement"] = value
+    assert load_config(write(tmp_path, parameters)).torque_measurement == value
+
+
+def test_torque_measurement_refuses_others_with_a_did_you_mean(tmp_path):
+    parameters = base_parameters()
+    parameters["robot_model"]["torque_measurement"] = "motor_curent"
+    with pytest.raises(ConfigError, match=r"robot_model\.torque_measurement.*did you mean 'motor_current'"):
+        load_config(write(tmp_path, parameters))
+    del parameters["robot_model"]["torque_measurement"]      # unknown robots: motor_current (the key's comment)
+    assert load_config(write(tmp_path, parameters)).torque_measurement == "motor_current"
+    assert load_config(ROOT / "config" / "panda.yaml").torque_measurement == "link_torque_sensor"
+    assert load_config(ROOT / "config" / "ur5.yaml").torque_measurement == "motor_current"

@@ -2,8 +2,6 @@
 hand-written list it replaced, and every torque effect has its numpy columns and its compiled branch."""
 from __future__ import annotations
 
-from dataclasses import fields
-
 import numpy as np
 import pytest
 
@@ -39,7 +37,8 @@ OLD_PER_JOINT_PARAMETERS = {
     "payload": OLD_PAYLOAD_PARAMETERS, "link_inertia": OLD_PAYLOAD_PARAMETERS}
 OLD_NONNEGATIVE = ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature")
 OLD_BODY_EFFECTS = ("payload", "link_inertia")                  # gap.diagnose's ("payload", "link_inertia")
-OLD_PRIOR_BOUNDED = ("drive_gain", "joint_offset")              # gap.admissible's ("drive_gain", "joint_offset")
+# Issue 28: every effect has a physical prior (gap.priors), not only drive gain and joint offset
+PRIOR_BOUNDED = OLD_EFFECT_NAMES
 OLD_STRIBECK_VELOCITIES = (0.03, 0.1, 0.3)
 OLD_COULOMB_WIDTHS = (0.02, 0.05, 0.1, 0.2)
 OLD_RIPPLE_CYCLES = (2, 3, 4, 6, 8, 12, 16, 24, 32, 50, 64, 100)
@@ -56,7 +55,7 @@ def test_the_derived_lists_are_the_old_hand_lists():
     assert catalog.REQUIRED_VARIANT == OLD_REQUIRED_VARIANT == augmentation.REQUIRED_VARIANT
     assert catalog.NONNEGATIVE == OLD_NONNEGATIVE
     assert catalog.BODY_EFFECTS == OLD_BODY_EFFECTS
-    assert catalog.PRIOR_BOUNDED == OLD_PRIOR_BOUNDED
+    assert catalog.PRIOR_BOUNDED == PRIOR_BOUNDED
     assert catalog.TANH_EPSILON == OLD_TANH_EPSILON == augmentation.TANH_EPSILON
     assert augmentation.PAYLOAD_SIZE == len(OLD_PAYLOAD_PARAMETERS)
     assert {name: Term(name, (0,)).per_joint_parameters for name in OLD_EFFECT_NAMES} == OLD_PER_JOINT_PARAMETERS
@@ -82,6 +81,8 @@ def test_the_variants_are_the_old_grids():
 
 
 def test_the_bounds_are_the_old_bounds():
+    """Without a robot's derived ``limits`` (``gap.priors.robot_priors``) only drive gain and joint offset are
+    bounded by their priors."""
     priors = Priors(max_gain_error=0.07, max_joint_offset=0.01, flange_mass=1.5)
     for name in OLD_EFFECT_NAMES:
         term = Term(name, (0, 2, 3), variants(name)[0])
@@ -100,13 +101,11 @@ def test_the_bounds_are_the_old_bounds():
 
 
 def test_every_catalog_line_is_well_formed():
-    names = {field.name for field in fields(Priors)}
     for entry in catalog.EFFECTS:
         assert entry.kind in (catalog.TORQUE, catalog.STRUCTURAL), entry.name
         assert entry.layout in (catalog.JOINT, catalog.COUPLED, catalog.BODY), entry.name
         assert entry.parameters and entry.help, entry.name
-        assert entry.prior == "" or entry.prior in names, entry.name
-        assert not (entry.nonnegative and entry.prior), entry.name
+        assert entry.prior, entry.name                # a physical prior for every effect (gap.priors)
         assert all(values for values in entry.grid.values()), entry.name
         if entry.kind == catalog.TORQUE:           # one column per parameter, on its own joint; ≤ 1 kernel setting
             assert entry.layout == catalog.JOINT and len(entry.required) <= 1, entry.name

@@ -98,8 +98,9 @@ def runs():
 def diagnoses(runs, robots):
     # The test plants' drive gains (0.9-1.1, current-based drives) and encoder offsets (up to 2.3°, incremental
     # encoders) lie outside the default priors (±10 %, ±1°), so the fits get the priors a user of such a robot
-    # passes (`--max-gain-error 0.2 --max-joint-offset 5`); the default priors are tested in test_gap_priors.
-    priors = Priors(max_gain_error=0.2, max_joint_offset=float(np.radians(5.0)))
+    # passes (`--max-gain-error 0.2 --max-joint-offset 5`); the default priors are tested in test_gap_priors. The
+    # simulator applies the commanded torque: robot_model.torque_measurement commanded_effort (the widest priors).
+    priors = Priors(max_gain_error=0.2, max_joint_offset=float(np.radians(5.0)), torque_measurement="commanded_effort")
     return {key: diagnose(robots[key[0]], [estimator_inputs(run)], log=lambda _: None, priors=priors)
             for key, run in runs.items()}
 

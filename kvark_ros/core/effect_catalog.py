@@ -90,6 +90,13 @@ EFFECTS = (
     EffectEntry("joint_offset", STRUCTURAL, ("offset",), COUPLED, prior="1° (--max-joint-offset)",
                 help="the encoder reads q + δ: gap −∂τ_EL/∂q δ (first order), δ rad"),
 )
+# How wide the priors are for each way τ_m is measured (``robot_model.torque_measurement``; reasons in ``gap.priors``):
+# gain |1 − g|; offset, ripple and friction as shares of the joint's effort limit; armature: the factor c.
+MEASUREMENT_WIDTHS: Mapping[str, Mapping[str, float]] = MappingProxyType({
+    "link_torque_sensor": {"gain": 0.02, "offset": 0.02, "ripple": 0.01, "friction": 0.10, "armature": 0.25},
+    "motor_current": {"gain": 0.10, "offset": 0.03, "ripple": 0.02, "friction": 0.20, "armature": 1.0},
+    "commanded_effort": {"gain": 0.20, "offset": 0.05, "ripple": 0.05, "friction": 0.30, "armature": 2.0},
+})
 EFFECTS_BY_NAME = {entry.name: entry for entry in EFFECTS}
 EFFECT_NAMES = tuple(entry.name for entry in EFFECTS)
 TORQUE_EFFECTS = tuple(entry.name for entry in EFFECTS if entry.kind == TORQUE)

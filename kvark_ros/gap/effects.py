@@ -36,10 +36,9 @@ import numpy as np
 import pinocchio as pin
 
 # The library is ``core.effect_catalog`` (one line an effect); EFFECT_NAMES and PER_JOINT are re-exported from it.
-from kvark_ros.core.effect_catalog import EFFECT_NAMES, EFFECTS_BY_NAME, PER_JOINT  # noqa: F401
+from kvark_ros.core.effect_catalog import EFFECT_NAMES, EFFECTS_BY_NAME, MEASUREMENT_WIDTHS, PER_JOINT  # noqa: F401
 from kvark_ros.core.estimation.augmentation import joint_columns
 from kvark_ros.core.estimation.robot_model import RobotModel
-from kvark_ros.gap.priors import MEASUREMENT_WIDTHS
 
 MIN_MASS = 1e-3                               # kg, smallest total mass of the flange's link
 # Prior standard deviations of link_inertia (CAD-like errors): mass 20 % of the link's, first moment

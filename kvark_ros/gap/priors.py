@@ -47,17 +47,12 @@ import numpy as np
 import pinocchio as pin
 
 from kvark_ros.core.config_schema import TORQUE_MEASUREMENTS
+from kvark_ros.core.effect_catalog import MEASUREMENT_WIDTHS
 from kvark_ros.core.estimation.robot_model import RobotModel
 
 if TYPE_CHECKING:
     from kvark_ros.gap.effects import Priors
 
-# Shares per torque measurement (module docstring): gain |1 − g|; offset, ripple, friction of τ_max; armature: c.
-MEASUREMENT_WIDTHS: Mapping[str, Mapping[str, float]] = {
-    "link_torque_sensor": {"gain": 0.02, "offset": 0.02, "ripple": 0.01, "friction": 0.10, "armature": 0.25},
-    "motor_current": {"gain": 0.10, "offset": 0.03, "ripple": 0.02, "friction": 0.20, "armature": 1.0},
-    "commanded_effort": {"gain": 0.20, "offset": 0.05, "ripple": 0.05, "friction": 0.30, "armature": 2.0},
-}
 assert set(MEASUREMENT_WIDTHS) == set(TORQUE_MEASUREMENTS)
 ACCELERATION_TIME = 0.03     # s, unloaded rotor from rest to top speed under peak torque (armature bound)
 DEFAULT_SPEED = math.pi      # rad/s, q̇_max of a joint whose URDF gives none

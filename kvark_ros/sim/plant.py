@@ -25,7 +25,7 @@ A plant file is YAML; every key is optional and a missing key means "as the URDF
     position_ripple: {amplitude: [...] N·m, cycles_per_rev: [...]}   # amplitude·sin(cycles·q)
     joint_offset: [...]             # rad, encoder zero error: the encoder reads q + joint_offset
     noise: {torque_std: N·m, torque_std_per_rad_s: N·m·s/rad, encoder_counts_per_rev: int}
-    control_rate_hz: 1000           # 1000 or 500: rate of the simulated controller
+    control_rate_hz: 1000           # 1000, 500, 125 or 100: rate of the simulated controller
 
 Per-joint values are lists of n numbers in joint order; the noise standard deviations may also
 be a single number for every joint. Dynamics of the plant (joint j):
@@ -76,7 +76,9 @@ from kvark_ros.core.estimation.payload import Payload
 FloatArray = npt.NDArray[np.float64]
 PLANT_DIR = Path(__file__).resolve().parent / "plants"
 FRICTION_MODELS = ("none", "gaz_sigmoid", "coulomb_viscous", "stribeck")
-CONTROL_RATES_HZ = (1000.0, 500.0)
+# Control rates of the simulated controller: each period must be a whole number of 1 ms physics steps.
+# 1 kHz Panda (FCI), 500 Hz UR e-Series / UR5 RTDE, 125 Hz UR CB3, 100 Hz as logged by some UR10e datasets.
+CONTROL_RATES_HZ = (1000.0, 500.0, 125.0, 100.0)
 ORACLE_VARIANCE = 1e-4   # N²·m²: the oracle's residual is exact up to the plant's noise
 _FRICTION_PARAMETERS = {
     "none": ("viscous",),

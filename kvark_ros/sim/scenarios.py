@@ -1,7 +1,8 @@
 """Simulated recordings with ground truth: excitation, payload, contact and collision runs.
 
 Timing: physics at 1 kHz (``PHYSICS_DT``), the controller at the plant file's
-``control_rate_hz`` (1 kHz or 500 Hz), logging at 500 Hz (``LOG_RATE_HZ``). A logged sample at
+``control_rate_hz`` (1 kHz, 500, 125 or 100 Hz), logging at ``log_rate_hz``: the control rate, at most
+500 Hz (``LOG_RATE_HZ``), as a real controller logs what it runs (a 125 Hz UR writes 125 Hz). A logged sample at
 stamp t_k holds what the controller saw at t_k and the command it sent then. The plant clock
 (s since power-on, for the friction and torque-offset drifts) reads ``start_time + t_k``:
 ``run_scenario`` draws ``start_time`` per seed uniformly within the first ``SESSION_S`` after
@@ -51,13 +52,17 @@ from kvark_ros.sim.robots import RobotSetup, robot_setup
 FloatArray = npt.NDArray[np.float64]
 SCENARIOS = ("excitation", "payload", "contact", "collision")
 LOG_RATE_HZ = 500.0
-_STEPS_PER_LOG = int(round(1.0 / (LOG_RATE_HZ * PHYSICS_DT)))
-_NS_PER_LOG = int(round(1e9 / LOG_RATE_HZ))
 _BLOCK = 1000                                  # physics steps per noise draw / progress update
 SESSION_S = 1800.0                             # s: recordings start within half an hour of power-on
 _GRAVITY = pin.Motion(np.array([0.0, 0.0, -9.81]), np.zeros(3))
 
 Controller = Callable[[float, FloatArray, FloatArray], FloatArray]
+
+
+def log_rate_hz(plant: PlantSpec) -> float:
+    """Rate the simulator logs a plant at, Hz: its control rate, at most ``LOG_RATE_HZ`` (a 100 Hz robot
+    writes 100 Hz bags; a 1 kHz one 500 Hz, as before)."""
+    return min(plant.control_rate_hz, LOG_RATE_HZ)
 
 
 class ExternalForce(Protocol):
@@ -173,7 +178,7 @@ class SimulationOutput:
     @property
     def real_time_factor(self) -> float:
         """Simulated seconds per wall-clock second."""
-        duration = len(self.run.joint_states.stamp) / LOG_RATE_HZ
+        duration = len(self.run.joint_states.stamp) / log_rate_hz(self.plant)
         return duration / max(self.wall_time, 1e-9)
 
 
@@ -246,13 +251,15 @@ def run_simulation(setup: RobotSetup, plant: PlantSpec, controller: Controller, 
     """
     wall_start = time.perf_counter()
     n, names = setup.n, setup.joint_names
-    logs = int(round(duration * LOG_RATE_HZ))
+    log_rate = log_rate_hz(plant)
+    steps_per_log = int(round(1.0 / (log_rate * PHYSICS_DT)))
+    logs = int(round(duration * log_rate))
     if logs < 2:
         raise ValueError(f"duration {duration} s is shorter than two log periods")
-    steps = logs * _STEPS_PER_LOG
+    steps = logs * steps_per_log
     control_every = int(round(1.0 / (plant.control_rate_hz * PHYSICS_DT)))
     resolution = plant.encoder_resolution
-    velocity_std = resolution / (np.sqrt(6.0) / LOG_RATE_HZ)
+    velocity_std = resolution / (np.sqrt(6.0) / log_rate)
     sim = MujocoPlant(setup, plant)
     sim.reset(np.asarray(start, dtype=float) - plant.joint_offset, time=start_time)
     nominal = setup.nominal_model()
@@ -279,8 +286,8 @@ def run_simulation(setup: RobotSetup, plant: PlantSpec, controller: Controller, 
         wrenches = [w for force in forces for w in force.wrenches(t, sim)]
         sim.apply(wrenches)
         drive, friction, qdd = sim.step(tau_m)
-        if k % _STEPS_PER_LOG == 0:
-            i = k // _STEPS_PER_LOG
+        if k % steps_per_log == 0:
+            i = k // steps_per_log
             rec["tau_ext"][i], sensor[i] = wrench_truth(q, wrenches)
             for key, value in zip(columns[:-1], (q, qd, qdd, q_meas, qd_meas, tau_m, drive, friction)):
                 rec[key][i] = value
@@ -293,7 +300,7 @@ def run_simulation(setup: RobotSetup, plant: PlantSpec, controller: Controller, 
         rec["tau_ext"] += tau_payload
         sensor += wrench_payload
     effort = rec["drive"] + effort_noise_std(plant, rec["qd"]) * rng.standard_normal((logs, n))
-    stamp = np.arange(logs, dtype=np.int64) * _NS_PER_LOG / 1e9
+    stamp = np.arange(logs, dtype=np.int64) * int(round(1e9 / log_rate)) / 1e9
     zeros = np.zeros((logs, n))
     run = RecordedRun(
         joint_states=JointStateSeries(stamp, names, rec["q_meas"], rec["qd_meas"], effort),

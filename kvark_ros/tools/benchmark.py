@@ -18,10 +18,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import shutil
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
@@ -30,9 +28,10 @@ from kvark_ros.core.files import check_output, staged_directory, write_text_atom
 from kvark_ros.core.estimation.model_store import TrainedModel, save_model
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.learning.training import train_model
-from kvark_ros.io import write_run
 from kvark_ros.io.alignment import read_inputs
 from kvark_ros.tools.evaluate import Setup, dask_client, decoded, evaluate_bags, loaded, merge
+from kvark_ros.tools.sim_bags import (AUGMENTED_OBSERVERS, FULL, QUICK, TEST_SCENARIOS, BenchmarkPlan, reuse_bags,
+                                      simulate_bags, training_clocks)
 from kvark_ros.tools.report import metrics_table
 
 if TYPE_CHECKING:
@@ -40,75 +39,12 @@ if TYPE_CHECKING:
 
     from kvark_ros.cli import SubParsers
 
-TEST_SCENARIOS = ("payload", "contact", "collision")
 ABLATIONS = ("kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "kvark")
-AUGMENTED_OBSERVERS = ("kvark", "kf", "momentum")
 PAPER_RATIOS = {"gpadkf": 0.59, "gmr_gp": 0.66, "nnadkf": 0.75}   # v2 Table IX, external ground truth
 # The robots differ from their URDFs the way real ones do (link inertia, tool, stiction, drifts): a residual
 # in q̇ alone cannot look perfect there. `--plant kvark_ros/sim/plants/<robot>_default.yaml`: friction only, the
 # plant `kvark simulate` uses by default.
 DEFAULT_PLANT = "realistic"
-
-
-@dataclass(frozen=True)
-class BenchmarkPlan:
-    """How much data: training recordings and the length of each test recording, s."""
-
-    train_seeds: tuple[int, ...]
-    train_duration: float
-    test_duration: float
-
-
-FULL = BenchmarkPlan(train_seeds=(11, 12, 13, 14, 15), train_duration=20.0, test_duration=20.0)
-QUICK = BenchmarkPlan(train_seeds=(11, 12), train_duration=10.0, test_duration=8.0)
-
-
-def training_clocks(count: int) -> list[float]:
-    """Plant clocks (s since power-on) of ``count`` training recordings: the middles of ``count`` equal parts of
-    the simulator's session. Drawn at random, the five of the full plan all met the torque-offset drifts near
-    the same phase (sin > 0.68), and the tests met the opposite one: a training set no user would record."""
-    from kvark_ros.sim.scenarios import SESSION_S
-    return [SESSION_S * (i + 0.5) / count for i in range(count)]
-
-
-def simulate_bags(robot: str, plan: BenchmarkPlan, folder: Path, seed: int, log,
-                  plant: Path | None = None) -> tuple[list[Path], dict]:
-    """Training and test bags under ``folder`` (those already there are reused, see ``reuse_bags``); ``plant``: a
-    plant file instead of the robot's default.
-
-    The training recordings start evenly spread over the simulator's session after power-on (``training_clocks``),
-    as a user records training data from cold to warm; each test recording's start is drawn from its seed.
-    """
-    from kvark_ros.sim.scenarios import simulate
-    folder.mkdir(parents=True, exist_ok=True)
-    jobs = [(f"train_excitation_{s}", "excitation", s + seed, plan.train_duration, clock)
-            for s, clock in zip(plan.train_seeds, training_clocks(len(plan.train_seeds)))]
-    jobs += [(f"test_{name}", name, seed + 100 + i, plan.test_duration, None) for i, name in enumerate(TEST_SCENARIOS)]
-    paths: dict[str, Path] = {}
-    for step, (label, scenario, scenario_seed, duration, clock) in enumerate(jobs, start=1):
-        path = folder / label
-        if not path.exists():
-            started = time.perf_counter()
-            write_run(path, simulate(robot, scenario, scenario_seed, duration, plant, start_time=clock))
-            log(f"[benchmark] simulated {step}/{len(jobs)} {label} ({duration:g} s) in "
-                f"{time.perf_counter() - started:.1f} s")
-        paths[label] = path
-    train = [paths[label] for label, scenario, *_ in jobs if scenario == "excitation"]
-    tests = {scenario: paths[f"test_{scenario}"] for scenario in TEST_SCENARIOS}
-    return train, tests
-
-
-def reuse_bags(old: Path, new: Path) -> None:
-    """The bags of the output a ``--force`` run replaces, hard-linked into the new one (copied where a link fails),
-    so only what is missing is simulated; the old output stays whole until the swap."""
-    def link_or_copy(source: str, target: str) -> None:
-        try:
-            os.link(source, target)
-        except OSError:
-            shutil.copy2(source, target)
-
-    if old.is_dir() and not old.is_symlink():
-        shutil.copytree(old, new, copy_function=link_or_copy, dirs_exist_ok=True)
 
 
 RMSE_LIMITS = (("momentum", 0.8), ("kf", 0.8), ("oracle", 1.3))   # K-VARK's joint RMSE ≤ limit × the other's
@@ -220,12 +156,18 @@ def add_parser(subparsers: SubParsers) -> None:
                     "power-on (cold to warm, the drifting offsets at spread phases). Bags are kept under DIR/bags "
                     "and reused on a rerun with --force. DIR is written whole: an existing non-empty DIR is replaced "
                     "only with --force.")
-    parser.add_argument("--robot", default="panda", choices=("panda", "ur5"), help="simulated robot (default panda)")
+    parser.add_argument("--robot", choices=("panda", "ur5"), help="simulated robot (default panda)")
     parser.add_argument("--out", required=True, help="output directory (new or empty; see --force)")
     parser.add_argument("--force", action="store_true",
                         help="replace an existing --out whole once the new output is complete (its bags are reused)")
     parser.add_argument("--quick", action="store_true", help="less data: finishes in a few minutes")
-    parser.add_argument("--seed", type=int, default=0, help="offset of every simulation seed (default 0)")
+    parser.add_argument("--seed", type=int, default=0, help="offset of every simulation seed (default 0); with "
+                                                            "--population, the population's seed")
+    parser.add_argument("--population", type=int, metavar="N",
+                        help="draw N simulated robots (Panda, UR5 and UR10 classes, each with its own plant, rate and "
+                             "payload; kvark_ros/sim/population.py), train and diagnose each on its own free motion, "
+                             "test on its payload, contact and collision scenes; report the distributions per arm "
+                             "class (one Dask task per robot); conflicts with --robot, --plant and --real")
     parser.add_argument("--observers", default="all", help="comma-separated observers or 'all' (default)")
     parser.add_argument("--plant", help="simulate this plant file instead of "
                                         "kvark_ros/sim/plants/<robot>_realistic.yaml (link inertia and tool errors, "
@@ -254,6 +196,12 @@ def add_parser(subparsers: SubParsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.population is not None:
+        from kvark_ros.tools.population import check_arguments, run_population
+        check_arguments(args)
+        check_output(args.out, args.force)
+        return run_population(args)
+    args.robot = args.robot or "panda"
     check_output(args.out, args.force, (args.real, args.config))
     if args.real:
         from kvark_ros.tools.real_benchmark import run_real

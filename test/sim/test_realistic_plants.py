@@ -22,7 +22,7 @@ from kvark_ros.sim.plant import (PLANT_DIR, LinkErrorDraw, OracleResidual, Plant
 from kvark_ros.sim.robots import RobotSetup, robot_setup, urdf_xml
 from kvark_ros.sim.scenarios import SESSION_S, run_scenario
 from kvark_ros.sim.true_model import link_errors, links_after, moving_links, true_urdf
-from kvark_ros.tools.benchmark import training_clocks
+from kvark_ros.tools.sim_bags import training_clocks
 
 DRAW = {"seed": 3, "mass_rel": 0.15, "com_m": 0.02, "inertia_rel": 0.3}
 

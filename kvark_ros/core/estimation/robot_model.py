@@ -38,6 +38,7 @@ if TYPE_CHECKING:
 EXAMPLE_ROBOT_DATA_URDFS = {
     "panda": "robots/panda_description/urdf/panda.urdf",
     "ur5": "robots/ur_description/urdf/ur5_robot.urdf",
+    "ur10": "robots/ur_description/urdf/ur10_robot.urdf",
 }
 
 

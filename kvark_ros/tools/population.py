@@ -1,0 +1,351 @@
+"""``kvark benchmark --population N --seed S``: K-VARK on a population of simulated robots nobody tuned for.
+
+Robot i of population S is ``kvark_ros.sim.population.draw_robot(i, S)`` (Panda-, UR5- and UR10-class arms, each
+with its own plant). Each robot is one Dask task on ``kvark evaluate``'s engine (``dask_client``: a local cluster,
+one worker process per core, pinned to its core): simulate its free-motion training bags and its payload, contact
+and collision test bags (``sim_bags.simulate_bags``), train on the nominal model, diagnose and train on the
+augmented model (``train_on_diagnosis``, as ``benchmark --augment``), and replay kvark, kf, momentum and the oracle
+(which gets the robot's plant file) on the nominal model and kvark, kf, momentum on the augmented one
+(``evaluate_task``, the task ``kvark evaluate`` runs). The figures are then pooled into distributions over
+robots × scenes ("cells"): median, 90th percentile (the value 90 % of the cells do better than) and worst, per
+arm class and pooled, and checked against ``acceptance_lines``. ``results.json`` and ``report.md`` go into --out
+(``staged_directory``), each robot's bags, plant, models and log under ``robots/<arm>_<index>``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+import traceback
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from kvark_ros.core.config import ConfigError
+from kvark_ros.core.files import staged_directory, write_text_atomically
+from kvark_ros.tools.sim_bags import AUGMENTED_OBSERVERS, TEST_SCENARIOS, BenchmarkPlan
+
+if TYPE_CHECKING:
+    from kvark_ros.sim.population import PopulationRobot
+
+NOMINAL_OBSERVERS = ("kvark", "kf", "momentum", "oracle")
+# Data per robot. Full: `--population 6 --seed 1001` took 11.2 min on 2 cores shared with other jobs (load 4-6; a 500 Hz
+# robot ~330 s, a 100/125 Hz one ~100 s); quick: `--population 3 --seed 1000` 2.3 min.
+FULL = BenchmarkPlan(train_seeds=(11, 12, 13), train_duration=15.0, test_duration=10.0)
+QUICK = BenchmarkPlan(train_seeds=(11, 12), train_duration=10.0, test_duration=8.0)
+ORACLE_QUALIFIES = 0.7      # the 0.8 rules apply to cells where the oracle reaches ≤ 0.7 × kf
+RMSE_RULES = (("kf", 0.8), ("momentum", 0.8))
+ORACLE_LIMIT = 1.3
+JOINT_COVERAGE_MEDIAN = 0.90
+POOLED_COVERAGE = (0.90, 0.98)
+COVERAGE_WORST_DECILE = 0.85
+SEED_STRIDE = 100000        # simulation seeds of robot i of population S: S·SEED_STRIDE + 200·i + …
+
+
+def _figures(metrics: Mapping[str, Any]) -> dict[str, Any]:
+    """The figures kept per observer and scene."""
+    return {key: metrics.get(key) for key in ("joint_rmse_mean", "joint_rmse", "coverage95", "coverage95_per_joint")}
+
+
+def _pin_to_core() -> None:
+    """Pin this Dask worker process to one core (by worker name), so training fits here, one joint after the
+    other (``joint_workers`` sees one core): a worker process may not start processes of its own."""
+    if not hasattr(os, "sched_setaffinity"):
+        return
+    try:
+        from distributed import get_worker
+        name = get_worker().name
+    except (ImportError, ValueError):
+        return
+    cores = sorted(os.sched_getaffinity(0))
+    index = name if isinstance(name, int) else sum(map(ord, str(name)))
+    os.sched_setaffinity(0, {cores[index % len(cores)]})
+
+
+def run_robot(robot: PopulationRobot, plan: BenchmarkPlan, folder: str) -> dict[str, Any]:
+    """The whole pipeline for one robot (a Dask task): simulate, train, diagnose, replay; its figures per scene.
+
+    ``folder``: the robot's own directory (absolute); its log goes to ``folder/log.txt``."""
+    import yaml
+
+    from kvark_ros.core.config import default_config_path, load_config
+    from kvark_ros.core.estimation.model_store import save_model
+    from kvark_ros.core.estimation.robot_model import RobotModel
+    from kvark_ros.core.learning.training import train_model
+    from kvark_ros.gap.diagnose import train_on_diagnosis
+    from kvark_ros.io.alignment import read_inputs
+    from kvark_ros.tools.sim_bags import simulate_bags
+    from kvark_ros.tools.evaluate import Setup, evaluate_task
+
+    _pin_to_core()
+    started = time.perf_counter()
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    lines: list[str] = []
+
+    def log(line: str) -> None:
+        lines.append(f"{time.perf_counter() - started:7.1f} s {line}")
+
+    plant_path = out / "plant.yaml"
+    plant_path.write_text(f"# {robot.description}\n" + yaml.safe_dump(robot.plant, sort_keys=False))
+    (out / "payload.yaml").write_text(yaml.safe_dump(robot.payload, sort_keys=False))
+    sim_seed = robot.seed * SEED_STRIDE + 200 * robot.index
+    try:
+        train_bags, test_bags = simulate_bags(robot.setup, plan, out / "bags", sim_seed, log, plant_path,
+                                              {"payload": robot.payload_plant()})
+        config_path = default_config_path(robot.setup).resolve()
+        config = load_config(config_path)
+        nominal = RobotModel.from_config(config)
+        segments = [read_inputs(bag, config)[1] for bag in train_bags]
+        trained = train_model(nominal, config.robot, segments, baselines=False, seed=sim_seed, log=log, jobs=1,
+                              info={"bags": [bag.name for bag in train_bags]}, settings=config.filter)
+        save_model(out / "model", trained)
+        setup = Setup(str(config_path), str((out / "model").resolve()), plant=str(plant_path.resolve()))
+        scenes: dict[str, Any] = {name: {"nominal": {}, "augmented": {}} for name in TEST_SCENARIOS}
+        for name, bag in test_bags.items():
+            for observer in NOMINAL_OBSERVERS:
+                scenes[name]["nominal"][observer] = _figures(evaluate_task(setup, str(bag.resolve()), observer).metrics)
+        augmentation: dict[str, Any] = {}
+        try:
+            _, augmentation = train_on_diagnosis(config, nominal, segments, out, baselines=False, seed=sim_seed,
+                                                 log=log)
+            augmented = Setup(str(config_path), str((out / "model_augmented").resolve()))
+            for name, bag in test_bags.items():
+                for observer in AUGMENTED_OBSERVERS:
+                    scenes[name]["augmented"][observer] = _figures(
+                        evaluate_task(augmented, str(bag.resolve()), observer).metrics)
+        except Exception as exc:       # a diagnosis that fails leaves the nominal figures standing, and says why
+            augmentation = {"error": f"{type(exc).__name__}: {exc}"}
+            log(f"[population] diagnosis failed: {augmentation['error']}\n{traceback.format_exc()}")
+    finally:
+        (out / "log.txt").write_text("\n".join(map(str, lines)) + "\n")
+    return {"robot": {"index": robot.index, "arm": robot.arm, "rate_hz": robot.rate_hz,
+                      "payload_kg": robot.payload_kg, "description": robot.description, "label": robot.label,
+                      "plant": robot.plant, "payload": robot.payload},
+            "augmentation": augmentation, "scenes": scenes, "seconds": round(time.perf_counter() - started, 1)}
+
+
+def distribution(values: Sequence[float], higher_is_worse: bool = True) -> dict[str, float | int | None]:
+    """Median, 90th percentile and worst of ``values``; for a figure where lower is worse (coverage) the
+    "90th percentile" is the 10th: the value 90 % of the cells do better than, i.e. the worst decile's edge."""
+    data = np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=float)
+    if data.size == 0:
+        return {"median": None, "p90": None, "worst": None, "count": 0}
+    p90 = np.percentile(data, 90 if higher_is_worse else 10)
+    worst = data.max() if higher_is_worse else data.min()
+    return {"median": float(np.median(data)), "p90": float(p90), "worst": float(worst), "count": int(data.size)}
+
+
+def cells(robots: Sequence[Mapping[str, Any]], arm: str | None = None) -> list[dict[str, Any]]:
+    """One row per robot × scene (of arm class ``arm``; None: every robot): the observers' figures, kvark's on the
+    augmented model as ``kvark_aug`` (and kf/momentum as ``kf_aug``/``momentum_aug``) where the diagnosis ran."""
+    rows = []
+    for result in robots:
+        if arm is not None and result["robot"]["arm"] != arm:
+            continue
+        for scene, models in result["scenes"].items():
+            row: dict[str, Any] = {"robot": result["robot"]["label"], "arm": result["robot"]["arm"], "scene": scene}
+            for observer, figures in models.get("nominal", {}).items():
+                row[observer] = figures
+            for observer, figures in models.get("augmented", {}).items():
+                row[f"{observer}_aug"] = figures
+            rows.append(row)
+    return rows
+
+
+def _value(row: Mapping[str, Any], observer: str, key: str = "joint_rmse_mean") -> float | None:
+    entry = row.get(observer)
+    return None if entry is None else entry.get(key)
+
+
+def summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Distributions over the cells: each observer's joint RMSE (N·m) and kvark's coverage95, pooled and per joint."""
+    out: dict[str, dict[str, Any]] = {}
+    for observer in ("kvark", "kvark_aug", "kf", "kf_aug", "momentum", "momentum_aug", "oracle"):
+        out[f"{observer} RMSE"] = distribution([_value(row, observer) for row in rows])
+    for observer in ("kvark", "kvark_aug"):
+        out[f"{observer} coverage95"] = distribution([_value(row, observer, "coverage95") for row in rows], False)
+        out[f"{observer} coverage95 per joint"] = distribution(
+            [v for row in rows for v in (_value(row, observer, "coverage95_per_joint") or [])], False)
+    return out
+
+
+def _verdict(ok: bool) -> str:
+    return "pass" if ok else "FAIL"
+
+
+def acceptance_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[str]:
+    """The acceptance checks over ``rows`` (robot × scene cells of ``group``), as pass/FAIL lines with the figures,
+    on the nominal model and on the augmented one (kvark_aug against kf_aug and momentum_aug, the nominal figures
+    where the diagnosis did not run; the nominal kf gates the cells: oracle ≤ 0.7 × kf). Ratios are taken per cell,
+    then their median: robots of different size pool."""
+    lines = []
+    qualifying = [row for row in rows if None not in (_value(row, "oracle"), _value(row, "kf"))
+                  and _value(row, "oracle") <= ORACLE_QUALIFIES * _value(row, "kf")]
+    for model, suffix in (("nominal", ""), ("augmented", "_aug")):
+        diagnosed = sum(row.get(f"kvark{suffix}") is not None for row in rows)
+        if not diagnosed:
+            lines.append(f"- {group}, {model}: no cell (the diagnosis did not run)")
+            continue
+        if diagnosed < len(rows):
+            model = f"{model} ({diagnosed} of {len(rows)} cells diagnosed, nominal elsewhere)"
+
+        def fig(row: Mapping[str, Any], observer: str, key: str = "joint_rmse_mean") -> Any:
+            entry = row.get(observer + suffix) or row.get(observer)
+            return None if entry is None else entry.get(key)
+
+        for other, limit in RMSE_RULES:
+            ratios = [fig(row, "kvark") / fig(row, other) for row in qualifying
+                      if fig(row, "kvark") is not None and fig(row, other)]
+            if not ratios:
+                lines.append(f"- {group}, {model}: K-VARK / {other}: no cell of {len(rows)} has oracle ≤ "
+                             f"{ORACLE_QUALIFIES} × kf (not judged)")
+                continue
+            median = float(np.median(ratios))
+            lines.append(f"- {group}, {model}: median K-VARK / {other} joint RMSE = {median:.2f} over {len(ratios)} "
+                         f"of {len(rows)} cells with oracle ≤ {ORACLE_QUALIFIES} × kf (≤ {limit}: "
+                         f"{_verdict(median <= limit)})")
+        ratios = [fig(row, "kvark") / _value(row, "oracle") for row in rows
+                  if fig(row, "kvark") is not None and _value(row, "oracle")]
+        if ratios:
+            median = float(np.median(ratios))
+            lines.append(f"- {group}, {model}: median K-VARK / oracle joint RMSE = {median:.2f} over {len(ratios)} "
+                         f"cells (≤ {ORACLE_LIMIT}: {_verdict(median <= ORACLE_LIMIT)})")
+        joint = distribution([v for row in rows for v in (fig(row, "kvark", "coverage95_per_joint") or [])], False)
+        pooled = distribution([fig(row, "kvark", "coverage95") for row in rows], False)
+        if joint["count"]:
+            ok = joint["median"] >= JOINT_COVERAGE_MEDIAN and joint["p90"] >= COVERAGE_WORST_DECILE
+            lines.append(f"- {group}, {model}: K-VARK coverage95 per joint: median {joint['median']:.3f} "
+                         f"(≥ {JOINT_COVERAGE_MEDIAN}), worst decile {joint['p90']:.3f} "
+                         f"(≥ {COVERAGE_WORST_DECILE}), worst {joint['worst']:.3f} over {joint['count']} "
+                         f"joint×cells: {_verdict(ok)}")
+        if pooled["count"]:
+            low, high = POOLED_COVERAGE
+            ok = low <= pooled["median"] <= high and pooled["p90"] >= COVERAGE_WORST_DECILE
+            lines.append(f"- {group}, {model}: K-VARK coverage95 pooled: median {pooled['median']:.3f} "
+                         f"({low}-{high}), worst decile {pooled['p90']:.3f} (≥ {COVERAGE_WORST_DECILE}), worst "
+                         f"{pooled['worst']:.3f} over {pooled['count']} cells: {_verdict(ok)}")
+    return lines
+
+
+def aggregate(robots: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Per arm class (in order of appearance) and pooled: the cells' distributions and the acceptance lines."""
+    from kvark_ros.sim.population import ARM_CLASSES
+    groups: dict[str, Any] = {}
+    present = [arm for arm in ARM_CLASSES if any(r["robot"]["arm"] == arm for r in robots)]
+    for group in (*present, "pooled"):
+        rows = cells(robots, None if group == "pooled" else group)
+        groups[group] = {"robots": len({row["robot"] for row in rows}), "cells": len(rows),
+                         "distributions": summary(rows), "acceptance": acceptance_lines(rows, group)}
+    return groups
+
+
+def _cell(value: float | None, decimals: int) -> str:
+    return "–" if value is None else f"{value:.{decimals}f}"
+
+
+def distribution_table(groups: Mapping[str, Any]) -> list[str]:
+    """Markdown: per group, median / p90 / worst of every figure."""
+    lines = ["| group | figure | median | p90 | worst | cells |", "|---|---|---|---|---|---|"]
+    for group, entry in groups.items():
+        for figure, dist in entry["distributions"].items():
+            decimals = 3 if "coverage" in figure else 4
+            lines.append(f"| {group} | {figure} | {_cell(dist['median'], decimals)} | {_cell(dist['p90'], decimals)} "
+                         f"| {_cell(dist['worst'], decimals)} | {dist['count']} |")
+    return lines
+
+
+def write_report(out: Path, results: Mapping[str, Any]) -> None:
+    """report.md: the robots, the distributions per arm class and pooled, every cell, the acceptance lines."""
+    plan = results["plan"]
+    text = [f"# kvark benchmark --population {len(results['robots'])} --seed {results['seed']}", "",
+            f"Per robot: {plan['train_recordings']} × {plan['train_duration']:g} s training recordings (free "
+            f"motion), payload, contact and collision scenes of {plan['test_duration']:g} s each; trained, diagnosed "
+            f"and replayed on its own data. {results['workers']} worker(s), {results['seconds'] / 60:.1f} min.",
+            "RMSE: joint RMSE (mean over joints), N·m; `_aug`: on the diagnosed (augmented) model. p90: the value "
+            "90 % of the cells do better than (for coverage the 10th percentile).", "", "## Robots", "",
+            "| robot | plant | effects named by the diagnosis | held-out gap (N·m) | time (s) |",
+            "|---|---|---|---|---|"]
+    for result in results["robots"]:
+        augmentation = result["augmentation"]
+        effects = ", ".join(augmentation.get("effects", [])) or augmentation.get("error", "none")
+        gap = (f"{augmentation['gap_before']:.3f} → {augmentation['gap_after']:.3f}" if "gap_before" in augmentation
+               else "–")
+        text.append(f"| {result['robot']['label']} | {result['robot']['description']} | {effects} | {gap} | "
+                    f"{result['seconds']:.0f} |")
+    text += ["", "## Distributions over robots × scenes", ""] + distribution_table(results["groups"])
+    text += ["", "## Every cell, joint RMSE (N·m) and coverage95", "",
+             "| robot | scene | kvark | kvark_aug | kf | kf_aug | momentum | oracle | cov95 kvark | cov95 kvark_aug |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for row in cells(results["robots"]):
+        rmse = " | ".join(_cell(_value(row, name), 4)
+                          for name in ("kvark", "kvark_aug", "kf", "kf_aug", "momentum", "oracle"))
+        text.append(f"| {row['robot']} | {row['scene']} | {rmse} | {_cell(_value(row, 'kvark', 'coverage95'), 3)} | "
+                    f"{_cell(_value(row, 'kvark_aug', 'coverage95'), 3)} |")
+    text += ["", "## Acceptance checks", ""] + [line for entry in results["groups"].values()
+                                               for line in entry["acceptance"]]
+    write_text_atomically(out / "report.md", "\n".join(text) + "\n")
+
+
+def check_arguments(args: argparse.Namespace) -> None:
+    """One-line errors for options --population cannot take."""
+    if args.population < 1:
+        raise ConfigError(f"--population {args.population}: give at least 1 robot")
+    if args.real:
+        raise ConfigError("--population simulates its robots; it conflicts with --real (a recording): use one")
+    if args.robot is not None:
+        raise ConfigError("--population draws its robots (Panda, UR5 and UR10 classes); it conflicts with --robot")
+    if args.plant:
+        raise ConfigError("--population draws each robot's plant; it conflicts with --plant")
+    if args.seed < 0:
+        raise ConfigError(f"--seed {args.seed}: give a seed >= 0")
+
+
+def run_population(args: argparse.Namespace, log: Callable[[str], None] = print) -> int:
+    """``kvark benchmark --population N --seed S``."""
+    from distributed import as_completed
+
+    from kvark_ros.sim.population import draw_population
+    from kvark_ros.tools.evaluate import dask_client
+    check_arguments(args)
+    started = time.perf_counter()
+    plan = QUICK if args.quick else FULL
+    robots = draw_population(args.population, args.seed)
+    for robot in robots:
+        log(f"[population] {robot.label}: {robot.description}")
+    with staged_directory(args.out, args.force) as out:
+        results: list[dict[str, Any]] = []
+        failed: list[str] = []
+        with dask_client(None, None, len(robots), log) as client:
+            workers = len(client.scheduler_info()["workers"])
+            futures = {client.submit(run_robot, robot, plan, str((out / "robots" / f"{robot.arm}_{robot.index}")
+                                                                  .resolve()), pure=False): robot
+                       for robot in robots}
+            for done, future in enumerate(as_completed(futures), start=1):
+                robot = futures[future]
+                if future.status == "error":
+                    failed.append(f"{robot.label}: {type(future.exception()).__name__}: {future.exception()}")
+                    log(f"[population] {done}/{len(robots)} {robot.label} FAILED: {failed[-1]}")
+                    continue
+                result = future.result()
+                future.release()
+                results.append(result)
+                log(f"[population] {done}/{len(robots)} {robot.arm} #{robot.index} ({robot.rate_hz:g} Hz) done in "
+                    f"{result['seconds']:.0f} s")
+        results.sort(key=lambda result: result["robot"]["index"])
+        payload = {"seed": args.seed, "workers": workers, "seconds": round(time.perf_counter() - started, 1),
+                   "plan": {"train_recordings": len(plan.train_seeds), "train_duration": plan.train_duration,
+                            "test_duration": plan.test_duration},
+                   "robots": results, "failed": failed, "groups": aggregate(results)}
+        write_text_atomically(out / "results.json", json.dumps(payload, indent=2))
+        write_report(out, payload)
+    for line in distribution_table(payload["groups"]):
+        log(line)
+    for entry in payload["groups"].values():
+        for line in entry["acceptance"]:
+            log(line)
+    log(f"[population] wrote {args.out}/results.json and {args.out}/report.md in "
+        f"{(time.perf_counter() - started) / 60:.1f} min")
+    return 1 if failed else 0

@@ -1,0 +1,92 @@
+"""``kvark benchmark --population``: the aggregation into distributions (median, p90, worst), the acceptance lines
+at their limits, and the CLI's refusals. A hand-made table replaces the simulation, so this runs in a second."""
+from __future__ import annotations
+
+import pytest
+
+from kvark_ros.cli import main
+from kvark_ros.tools.population import aggregate, cells, distribution
+
+
+def _obs(rmse: float, coverage: float | None = None, per_joint: list[float] | None = None) -> dict:
+    return {"joint_rmse_mean": rmse, "joint_rmse": None, "coverage95": coverage, "coverage95_per_joint": per_joint}
+
+
+def _robot(index: int, arm: str, scenes: dict) -> dict:
+    return {"robot": {"index": index, "arm": arm, "label": f"{arm} #{index} (500 Hz)"}, "scenes": scenes,
+            "augmentation": {}, "seconds": 1.0}
+
+
+def _scene(kvark: float, kf: float, momentum: float, oracle: float, coverage: float = 0.95,
+           per_joint: tuple[float, ...] = (0.95, 0.95), kvark_aug: float | None = None) -> dict:
+    nominal = {"kvark": _obs(kvark, coverage, list(per_joint)), "kf": _obs(kf), "momentum": _obs(momentum),
+               "oracle": _obs(oracle)}
+    augmented = {} if kvark_aug is None else {"kvark": _obs(kvark_aug, coverage, list(per_joint)), "kf": _obs(kf),
+                                              "momentum": _obs(momentum)}
+    return {"nominal": nominal, "augmented": augmented}
+
+
+def test_distribution_median_p90_and_worst_on_a_small_table() -> None:
+    values = [float(v) for v in range(1, 11)]                      # 1 … 10
+    rmse = distribution(values)
+    assert rmse["median"] == pytest.approx(5.5) and rmse["worst"] == 10.0 and rmse["count"] == 10
+    assert rmse["p90"] == pytest.approx(9.1)                        # numpy's linear interpolation: 1 + 0.9 · 9
+    coverage = distribution([0.99, 0.95, 0.93, 0.80, None], higher_is_worse=False)   # None (no figure) is skipped
+    assert coverage["worst"] == 0.80 and coverage["median"] == pytest.approx(0.94) and coverage["count"] == 4
+    assert coverage["p90"] == pytest.approx(0.839)                  # the 10th percentile: 0.80 + 0.3 · 0.13
+    assert distribution([])["median"] is None
+
+
+def test_groups_per_arm_class_and_pooled_over_robots_times_scenes() -> None:
+    robots = [_robot(0, "panda", {"payload": _scene(0.4, 1.0, 2.0, 0.5), "contact": _scene(0.6, 1.0, 2.0, 0.5)}),
+              _robot(1, "ur5", {"payload": _scene(3.0, 2.0, 4.0, 1.9)})]
+    assert len(cells(robots)) == 3 and len(cells(robots, "ur5")) == 1
+    groups = aggregate(robots)
+    assert list(groups) == ["panda", "ur5", "pooled"]
+    assert groups["pooled"]["cells"] == 3 and groups["pooled"]["robots"] == 2
+    kvark = groups["pooled"]["distributions"]["kvark RMSE"]
+    assert (kvark["median"], kvark["worst"]) == (0.6, 3.0)
+    assert groups["panda"]["distributions"]["oracle RMSE"]["median"] == 0.5
+
+
+def test_acceptance_lines_pass_and_fail_at_their_limits() -> None:
+    robots = [_robot(0, "panda", {"payload": _scene(0.8, 1.0, 1.0, 0.7, kvark_aug=0.5),      # qualifies: 0.7 ≤ 0.7
+                                  "contact": _scene(0.9, 1.0, 2.0, 0.71, kvark_aug=0.5)}),   # 0.71 > 0.7: not judged
+              _robot(1, "ur5", {"payload": _scene(0.81, 1.0, 1.0, 0.6, 0.85, (0.80, 0.99), kvark_aug=0.9)})]
+    lines = aggregate(robots)["pooled"]["acceptance"]
+    assert ("- pooled, nominal: median K-VARK / kf joint RMSE = 0.81 over 2 of 3 cells with oracle ≤ 0.7 × kf "
+            "(≤ 0.8: FAIL)") in lines                                 # median of 0.8 and 0.81 is 0.805
+    assert ("- pooled, augmented: median K-VARK / kf joint RMSE = 0.70 over 2 of 3 cells with oracle ≤ 0.7 × kf "
+            "(≤ 0.8: pass)") in lines
+    oracle = next(line for line in lines if line.startswith("- pooled, nominal: median K-VARK / oracle"))
+    assert oracle.endswith("(≤ 1.3: pass)")                          # median of 0.8/0.7, 0.9/0.71, 0.81/0.6 = 1.27
+    pooled = next(line for line in lines if line.startswith("- pooled, nominal: K-VARK coverage95 pooled"))
+    assert "median 0.950" in pooled and "worst 0.850" in pooled and pooled.endswith("pass")
+    per_joint = next(line for line in lines if line.startswith("- pooled, nominal: K-VARK coverage95 per joint"))
+    assert "worst decile 0.875" in per_joint and per_joint.endswith(": pass")   # 10th pct of .8,.95×4,.99
+    ur5 = aggregate(robots[1:])["ur5"]["acceptance"]
+    assert any("coverage95 per joint" in line and line.endswith("FAIL") for line in ur5)   # 0.80 in the worst decile
+    assert any("coverage95 pooled: median 0.850" in line and line.endswith("FAIL") for line in ur5)
+    unjudged = aggregate([_robot(0, "ur10", {"payload": _scene(1.0, 1.0, 1.0, 0.9)})])["pooled"]["acceptance"]
+    assert "- pooled, nominal: K-VARK / kf: no cell of 1 has oracle ≤ 0.7 × kf (not judged)" in unjudged
+    assert "- pooled, augmented: no cell (the diagnosis did not run)" in unjudged
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--population", "0"], "--population 0: give at least 1 robot"),
+    (["--population", "2", "--real", "bag"], "conflicts with --real"),
+    (["--population", "2", "--robot", "ur5"], "conflicts with --robot"),
+])
+def test_cli_refuses_bad_population_options_in_one_line(extra, message, tmp_path, capsys) -> None:
+    assert main(["benchmark", "--out", str(tmp_path / "out"), *extra]) != 0
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_augmented_lines_use_the_nominal_figures_where_the_diagnosis_did_not_run() -> None:
+    robots = [_robot(0, "ur5", {"payload": _scene(0.5, 1.0, 1.0, 0.6, kvark_aug=0.4)}),
+              _robot(1, "ur5", {"payload": _scene(0.9, 1.0, 1.0, 0.6)})]               # no diagnosis: 0.9 / 1.0
+    lines = aggregate(robots)["ur5"]["acceptance"]
+    assert ("- ur5, augmented (1 of 2 cells diagnosed, nominal elsewhere): median K-VARK / kf joint RMSE = 0.65 "
+            "over 2 of 2 cells with oracle ≤ 0.7 × kf (≤ 0.8: pass)") in lines                # median of 0.4 and 0.9

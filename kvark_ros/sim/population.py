@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from kvark_ros.sim.robots import _cylinder, robot_setup, urdf_xml
+from kvark_ros.sim.robots import cylinder_payload, robot_setup, urdf_xml
 
 ARM_CLASSES = ("panda", "ur5", "ur10")
 RATES_HZ = {"panda": (1000.0, 500.0), "ur5": (500.0, 125.0), "ur10": (500.0, 125.0, 100.0)}
@@ -137,7 +137,7 @@ def draw_robot(index: int, seed: int) -> PopulationRobot:
     radius, length = float(rng.uniform(*PAYLOAD_RADIUS)), float(rng.uniform(*PAYLOAD_LENGTH))
     com_z = GRASP_OFFSET_M[arm] + float(rng.uniform(*PAYLOAD_GAP)) + 0.5 * length
     lateral = rng.uniform(-PAYLOAD_LATERAL, PAYLOAD_LATERAL, 2)
-    body = _cylinder(mass, radius, length, com_z)
+    body = cylinder_payload(mass, radius, length, com_z)
     noise = rng.uniform(*NOISE[arm], 2)
     plant: dict[str, Any] = {
         "friction": {"model": "stribeck", "coulomb": _list(coulomb),

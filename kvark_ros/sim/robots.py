@@ -21,7 +21,7 @@ def urdf_xml(spec: str) -> str:
     return resolve_urdf(spec)
 
 
-def _cylinder(mass: float, radius: float, length: float, com_z: float) -> Payload:
+def cylinder_payload(mass: float, radius: float, length: float, com_z: float) -> Payload:
     """Solid cylinder along the flange z axis: a stand-in for a grasped part or a weight."""
     side = mass * (3.0 * radius**2 + length**2) / 12.0
     return Payload(mass, (0.0, 0.0, com_z), (side, side, 0.5 * mass * radius**2, 0.0, 0.0, 0.0))
@@ -81,7 +81,7 @@ ROBOTS: dict[str, RobotSetup] = {
         acceleration_limit=(15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0),
         kp=(2500.0,) * 7,
         kd=(100.0,) * 7,
-        payload=_cylinder(2.0, 0.04, 0.08, 0.14),
+        payload=cylinder_payload(2.0, 0.04, 0.08, 0.14),
         push_link="panda_link5",
     ),
     "ur5": RobotSetup(
@@ -96,7 +96,7 @@ ROBOTS: dict[str, RobotSetup] = {
         acceleration_limit=(8.0, 8.0, 10.0, 15.0, 15.0, 15.0),
         kp=(1600.0,) * 6,
         kd=(80.0,) * 6,
-        payload=_cylinder(2.0, 0.04, 0.08, 0.05),
+        payload=cylinder_payload(2.0, 0.04, 0.08, 0.05),
         push_link="forearm_link",
         excitation_half_range=(1.5, 1.2, 1.2, 1.5, 1.5, 1.5),
     ),
@@ -113,7 +113,7 @@ ROBOTS: dict[str, RobotSetup] = {
         acceleration_limit=(5.0, 5.0, 8.0, 12.0, 12.0, 12.0),
         kp=(1600.0,) * 6,
         kd=(80.0,) * 6,
-        payload=_cylinder(2.0, 0.04, 0.08, 0.05),
+        payload=cylinder_payload(2.0, 0.04, 0.08, 0.05),
         push_link="forearm_link",
         excitation_half_range=(1.5, 1.2, 1.2, 1.5, 1.5, 1.5),
     ),

@@ -294,18 +294,22 @@ def provenance(record: dict) -> str:
 def glance_table(records: dict) -> str:
     """README's results at a glance, from the recorded sections."""
     rows = ["| where | kvark | best other observer | kf | what |", "|---|---|---|---|---|"]
-    real = records.get("real-panda")
-    if real:
-        augmented = real["figures"]["augmented"]
-        best = min((n for n in augmented if n != "kvark"), key=lambda n: augmented[n]["joint_rmse"])
-        rows.append(f"| real Panda, held out (docs/results.md) | {augmented['kvark']['joint_rmse']:.3f} | {best} "
-                    f"{augmented[best]['joint_rmse']:.3f} | {augmented['kf']['joint_rmse']:.3f} | false τ_ext, N·m |")
-    real = records.get("real-ur10e")
-    if real:
-        augmented = real["figures"]["augmented"]
-        best = min((n for n in augmented if n != "kvark"), key=lambda n: augmented[n]["joint_rmse"])
-        rows.append(f"| real UR10e, held out (docs/results.md) | {augmented['kvark']['joint_rmse']:.3f} | {best} "
-                    f"{augmented[best]['joint_rmse']:.3f} | {augmented['kf']['joint_rmse']:.3f} | false τ_ext, N·m |")
+    for key, label in (("real-panda", "real Panda"), ("real-ur10e", "real UR10e")):
+        if key in records:
+            augmented = records[key]["figures"]["augmented"]
+            best = min((n for n in augmented if n != "kvark"), key=lambda n: augmented[n]["joint_rmse"])
+            rows.append(f"| {label}, held out (docs/results.md) | {augmented['kvark']['joint_rmse']:.3f} | {best} "
+                        f"{augmented[best]['joint_rmse']:.3f} | {augmented['kf']['joint_rmse']:.3f} "
+                        "| false τ_ext, N·m |")
+    population = records.get("population")
+    if population:
+        for name, group in population["figures"]["groups"].items():
+            medians = {key.split()[0].split("_")[0]: group["figures"][key]["median"] for key in
+                       ("kvark_aug RMSE", "kf_aug RMSE", "momentum_aug RMSE", "oracle RMSE") if key in group["figures"]}
+            best = min((n for n in medians if n not in ("kvark", "oracle")), key=medians.get)
+            rows.append(f"| simulated population, seed {population['figures']['seed']}, {name} (median of "
+                        f"{group['cells']} cells) | {medians['kvark']:.3f} | {best} {medians[best]:.3f} | "
+                        f"{medians['kf']:.3f} | joint RMSE, N·m |")
     for key, label in (("simulated-panda", "simulated Panda, realistic plant"),
                        ("simulated-ur5", "simulated UR5, realistic plant"), ("demo", "simulated Panda, `make demo`")):
         if key in records:

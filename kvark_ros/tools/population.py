@@ -31,8 +31,8 @@ if TYPE_CHECKING:
     from kvark_ros.sim.population import PopulationRobot
 
 NOMINAL_OBSERVERS = ("kvark", "kf", "momentum", "oracle")
-# Data per robot. Full: `--population 6 --seed 1001` took 11.2 min on 2 cores shared with other jobs (load 4-6; a 500 Hz
-# robot ~330 s, a 100/125 Hz one ~100 s); quick: `--population 3 --seed 1000` 2.3 min.
+# Data per robot. Full: `--population 6 --seed 7` took 412 s on 2 cores (load 0.8; 11.2 min for seed 1001 with other
+# jobs at load 4-6: a 500 Hz robot ~330 s, a 100/125 Hz one ~100 s); quick: `--population 3 --seed 1000` 2.3 min.
 FULL = BenchmarkPlan(train_seeds=(11, 12, 13), train_duration=15.0, test_duration=10.0)
 QUICK = BenchmarkPlan(train_seeds=(11, 12), train_duration=10.0, test_duration=8.0)
 ORACLE_QUALIFIES = 0.7      # the 0.8 rules apply to cells where the oracle reaches ≤ 0.7 × kf

@@ -5,7 +5,7 @@ robotics engineer sets up once per arm and never per run.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cache
 
 import numpy as np
@@ -100,24 +100,12 @@ ROBOTS: dict[str, RobotSetup] = {
         push_link="forearm_link",
         excitation_half_range=(1.5, 1.2, 1.2, 1.5, 1.5, 1.5),
     ),
-    # UR10-class (UR10/UR10e reach 1.3 m, 10-12.5 kg payload): the UR5's joints and frames at twice its link masses.
-    "ur10": RobotSetup(
-        name="ur10",
-        urdf="example-robot-data:ur10",
-        joint_names=("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint",
-                     "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"),
-        ee_frame="tool0",
-        flange_frame="tool0",
-        home=(0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0),
-        # Below the UR5's on the base joints: longer, heavier links and 330 N·m drives (UR publishes no limit).
-        acceleration_limit=(5.0, 5.0, 8.0, 12.0, 12.0, 12.0),
-        kp=(1600.0,) * 6,
-        kd=(80.0,) * 6,
-        payload=cylinder_payload(2.0, 0.04, 0.08, 0.05),
-        push_link="forearm_link",
-        excitation_half_range=(1.5, 1.2, 1.2, 1.5, 1.5, 1.5),
-    ),
 }
+# UR10-class (UR10/UR10e reach 1.3 m, 10-12.5 kg payload): the UR5's joints, frames, home, gains and push link at
+# twice its link masses; accelerations below the UR5's on the base joints (longer, heavier links and 330 N·m drives;
+# UR publishes no limit).
+ROBOTS["ur10"] = replace(ROBOTS["ur5"], name="ur10", urdf="example-robot-data:ur10",
+                         acceleration_limit=(5.0, 5.0, 8.0, 12.0, 12.0, 12.0))
 
 
 def robot_setup(name: str) -> RobotSetup:

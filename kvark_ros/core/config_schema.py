@@ -174,7 +174,8 @@ KEYS: tuple[Key, ...] = (
          "(docs/method.md §4.11; 0 = off)", runtime=True, **_unit(0.0, 10.0)),
     _key("filter.interval_calibration", "choice", "trained",
          "kvark's reported covariance: trained (scaled by the model's factors from contact-free training data, "
-         "docs/method.md §4.13) or off (the filter's own P)", runtime=True, choices=("trained", "off")),
+         "each variance at least the kf's steady state, docs/method.md §4.13) or off (the filter's own P)",
+         runtime=True, choices=("trained", "off")),
     _key("filter.huang_tau", "number", 300.0, "prior strength τ of the huang variant",
          **_unit(0.0, 1e6, low_open=True)),
     _key("filter.ewma_time", "number", 0.2,

@@ -80,8 +80,8 @@ def wrench_metrics(wrench: np.ndarray, truth: np.ndarray, rows: np.ndarray) -> d
             "force_rmse_mean": _rounded(rmse[:3].mean()), "moment_rmse_mean": _rounded(rmse[3:].mean())}
 
 
-CALIBRATION_KEYS = ("coverage95_per_joint", "vector_coverage95", "any_joint_miss_share", "any_joint_miss_nominal",
-                    "reliability")
+CALIBRATION_KEYS = ("coverage95_per_joint", "interval95_per_joint", "vector_coverage95", "any_joint_miss_share",
+                    "any_joint_miss_nominal", "reliability")
 
 
 def mahalanobis_squared(error: np.ndarray, covariance: np.ndarray) -> float:
@@ -111,11 +111,13 @@ def calibration_metrics(error: np.ndarray, std: np.ndarray, mahalanobis: np.ndar
     """How honest the reported uncertainty is, from errors e = τ̂ − τ_true (T, n) N·m, their reported σ (T, n) and
     eᵀP⁻¹e (T,) under the full covariance (None: not kept, the vector figures are None).
 
-    ``coverage95_per_joint``: per joint, the share of samples with |e| ≤ 1.96 σ. ``vector_coverage95``: the share of
-    samples with eᵀP⁻¹e ≤ χ²_n(0.95), the 95 % ellipsoid of the whole vector (correlations count). A miss on any of
-    n joints is far likelier than 5 %: ``any_joint_miss_share`` against ``any_joint_miss_nominal`` = 1 − 0.95ⁿ (its
-    value for independent, calibrated joints). ``reliability``: at each ``LEVELS`` nominal coverage, the observed
-    per-joint-sample coverage of ±z σ (z the two-sided normal quantile) and of the χ²_n ellipsoid.
+    ``coverage95_per_joint``: per joint, the share of samples with |e| ≤ 1.96 σ; ``interval95_per_joint``: the mean
+    half-width 1.96 σ (N·m) of that interval, what a coverage costs (wider is safer and less useful).
+    ``vector_coverage95``: the share of samples with eᵀP⁻¹e ≤ χ²_n(0.95), the 95 % ellipsoid of the whole vector
+    (correlations count). A miss on any of n joints is far likelier than 5 %: ``any_joint_miss_share`` against
+    ``any_joint_miss_nominal`` = 1 − 0.95ⁿ (its value for independent, calibrated joints). ``reliability``: at each
+    ``LEVELS`` nominal coverage, the observed per-joint-sample coverage of ±z σ (z the two-sided normal quantile) and
+    of the χ²_n ellipsoid.
     """
     n = error.shape[1]
     inside = np.abs(error) <= Z95 * std
@@ -124,6 +126,7 @@ def calibration_metrics(error: np.ndarray, std: np.ndarray, mahalanobis: np.ndar
     joint = [float(np.mean(np.abs(error) <= level_z * std)) for level_z in z]
     vector = [float(np.mean(finite <= chi2_quantile(level, n))) for level in LEVELS] if len(finite) else None
     return {"coverage95_per_joint": _rounded(inside.mean(axis=0)),
+            "interval95_per_joint": _rounded(Z95 * std.mean(axis=0)),
             "vector_coverage95": _rounded(float(np.mean(finite <= chi2_quantile(0.95, n)))) if len(finite) else None,
             "any_joint_miss_share": _rounded(float((~inside).any(axis=1).mean())),
             "any_joint_miss_nominal": _rounded(1.0 - 0.95 ** n),

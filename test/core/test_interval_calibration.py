@@ -113,6 +113,7 @@ def test_calibration_figures_of_hand_made_errors():
     error = np.array([[0.5, -0.5], [2.0, 0.0], [-3.0, 2.5]])
     entry = _metrics(_run("x", error, np.ones((3, 2)), np.eye(2)))
     assert entry["coverage95_per_joint"] == pytest.approx([1 / 3, 2 / 3], abs=1e-6)
+    assert entry["interval95_per_joint"] == pytest.approx([1.96, 1.96], abs=1e-6)      # the mean 1.96 σ
     assert entry["any_joint_miss_share"] == pytest.approx(2 / 3, abs=1e-6)
     # d² = 0.5, 4.0, 15.25 against χ²_2(0.95) = 5.99: one of three outside
     assert entry["vector_coverage95"] == pytest.approx(2 / 3, abs=1e-6)

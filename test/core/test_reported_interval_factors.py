@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from kvark_ros.core.estimation.calibration import COVERAGE, IntervalScale
-from kvark_ros.core.learning.interval_factors import WARMUP, Z95, interval_scale, needed_factor
+from kvark_ros.core.learning.interval_factors import WARMUP, Z95, interval_scale, needed_factor, variance_floor
 from kvark_ros.core.estimation.estimator import Estimator
 from kvark_ros.core.estimation.model_store import load_model, save_model
 from kvark_ros.core.estimation.observers import make_observer
@@ -33,6 +33,44 @@ def test_apply_scales_rows_and_columns():
     scale = IntervalScale(np.array([2.0, 0.5]))
     P = np.array([[4.0, 1.0], [1.0, 9.0]])
     np.testing.assert_allclose(scale.apply(P), np.diag([2.0, 0.5]) @ P @ np.diag([2.0, 0.5]))
+
+
+def test_the_floor_raises_only_the_variances_below_it_and_keeps_the_covariance_positive_semi_definite():
+    """diag(c) P diag(c) = [[16, 1], [1, 2.25]]: the first variance is above its floor 9 and stays, the second is
+    raised to 4; the off-diagonal term stays, and a non-negative diagonal added keeps the matrix PSD."""
+    scale = IntervalScale(np.array([2.0, 0.5]), np.array([9.0, 4.0]))
+    P = np.array([[4.0, 1.0], [1.0, 9.0]])
+    reported = scale.apply(P)
+    np.testing.assert_allclose(reported, [[16.0, 1.0], [1.0, 4.0]])
+    assert np.all(np.linalg.eigvalsh(reported) >= 0.0)
+    np.testing.assert_array_equal(IntervalScale(np.array([2.0, 0.5])).floor, [0.0, 0.0])     # models without one
+
+
+@pytest.mark.parametrize("bad", [[1.0, -1.0], [1.0, np.inf], [1.0]])
+def test_a_negative_non_finite_or_misshaped_floor_is_refused(bad):
+    with pytest.raises(ValueError, match="floor"):
+        IntervalScale(np.ones(2), np.array(bad))
+
+
+def test_the_floor_is_the_steady_state_variance_the_kf_reports(panda_config, panda_trained):
+    """variance_floor steps a fresh ``kf`` on zero input; its covariance does not depend on the data, so the ``kf``
+    stepped 4 s along a synthetic recording ends at the same P (to 1e-9 relative: both are 40+ time constants at
+    ω_b = 50 rad/s past the start, where the recursion's remaining change is below 1e-12)."""
+    kf = make_observer("kf", panda_trained, panda_config.filter)
+    h = panda_trained.sample_period
+    floor = variance_floor(kf, h)
+    rng = np.random.default_rng(3)
+    for _ in range(int(4.0 / h)):
+        _, cov = kf.step(h, *(rng.standard_normal(7) for _ in range(6)))
+    np.testing.assert_allclose(floor, np.diag(cov), rtol=1e-9)
+    assert np.all(floor > 0.0)
+
+
+def test_training_stores_the_kf_floor_with_the_factors(panda_config, panda_trained):
+    """The model's floor is the ``kf``'s steady state (docs/method.md §4.13), so kvark never reports τ_ext known
+    better than the fixed-Σ_d filter at the contact bandwidth would."""
+    expected = variance_floor(make_observer("kf", panda_trained, panda_config.filter), panda_trained.sample_period)
+    np.testing.assert_allclose(panda_trained.interval_scale.floor, expected, rtol=1e-9)
 
 
 @pytest.mark.parametrize("bad", [[1.0, 0.0], [1.0, np.nan], [[1.0]]])
@@ -96,6 +134,9 @@ def test_model_round_trip_keeps_the_factors_and_refuses_a_wrong_length(tmp_path,
     save_model(tmp_path / "model", trained)
     loaded = load_model(tmp_path / "model")
     np.testing.assert_array_equal(loaded.interval_scale.scale, trained.interval_scale.scale)
+    floored = replace(panda_trained, interval_scale=IntervalScale(np.ones(7), np.linspace(0.0, 0.6, 7)))
+    save_model(tmp_path / "floored", floored)
+    np.testing.assert_array_equal(load_model(tmp_path / "floored").interval_scale.floor, floored.interval_scale.floor)
     save_model(tmp_path / "short", replace(panda_trained, interval_scale=IntervalScale(np.ones(6))))
     with pytest.raises(ResidualModelError, match="disagree on the number of joints"):
         load_model(tmp_path / "short")
@@ -122,6 +163,14 @@ def test_the_estimator_reports_the_scaled_covariance_and_its_flags_do_not_move(p
     raw, raw_flags = _reported(off, panda, trained, stream)
     np.testing.assert_allclose(scaled, raw * np.outer(c, c), rtol=1e-12)
     assert flags == raw_flags
+    # A floor between the smallest and the largest reported variance: below it the variance is the floor, above
+    # it stays c² P; the flags still do not move.
+    variances = np.diagonal(scaled, axis1=1, axis2=2)
+    floor = np.median(variances, axis=0)
+    floored, floored_flags = _reported(config, panda, replace(trained, interval_scale=IntervalScale(c, floor)),
+                                       stream)
+    np.testing.assert_allclose(np.diagonal(floored, axis1=1, axis2=2), np.maximum(variances, floor), rtol=1e-12)
+    assert floored_flags == raw_flags
 
 
 def test_training_calibrates_the_intervals_on_its_own_recordings(panda_trained):

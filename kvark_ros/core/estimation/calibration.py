@@ -6,10 +6,12 @@ assumptions: on the realistic simulated Panda the drifting friction and offset m
 within the filter's band makes it 0.2-0.3 times its σ. On contact-free data the true τ_ext is zero, so
 τ̂ itself is the error, and the factor c_j that puts ``COVERAGE`` of the training τ̂_j inside ±1.96 c_j σ_j
 can be read off the training recordings. The estimator reports c² P (each joint's row and column scaled
-by c) plus the static friction band's σ²_s (core.estimation.stiction), and so the wrench covariance; the filter, its
-gain and the contact and collision tests keep P. c is read for that whole reported interval: near rest the band
-already covers part of the misfit, so the factor needed there is smaller. The factors are read at training
-(``core.learning.interval_factors``); this module holds them and applies them.
+by c), each variance raised to at least the floor P_b (the steady-state variance of the fixed-Σ_d ``kf`` at the
+contact bandwidth ω_b: the adaptive filter never claims to know τ_ext better than that filter would, docs/method.md
+§4.13), plus the static friction band's σ²_s (core.estimation.stiction), and so the wrench covariance; the filter, its
+gain and the contact and collision tests keep P. c is read for the interval without the floor (which only widens
+it): near rest the band already covers part of the misfit, so the factor needed there is smaller. The factors and
+the floor are read at training (``core.learning.interval_factors``); this module holds them and applies them.
 """
 from __future__ import annotations
 
@@ -24,26 +26,38 @@ CALIBRATED_OBSERVER = "kvark"  # the estimator the factors were read for (the ob
 
 @dataclass(frozen=True)
 class IntervalScale:
-    """c (n,) per joint: reported Cov τ̂ = diag(c) P diag(c) for ``CALIBRATED_OBSERVER``."""
+    """c (n,) per joint and the variance floor P_b (n,) N²·m²: reported Cov τ̂ = diag(c) P diag(c) for
+    ``CALIBRATED_OBSERVER``, each variance at least P_b (zeros: no floor, as in models trained before it)."""
 
     scale: np.ndarray
+    floor: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         scale = np.array(self.scale, dtype=float)
         if scale.ndim != 1 or not np.all(np.isfinite(scale)) or np.any(scale <= 0.0):
             raise ValueError(f"interval scale must be positive finite numbers, one per joint, got {self.scale}")
-        scale.setflags(write=False)
-        object.__setattr__(self, "scale", scale)
+        floor = np.zeros_like(scale) if self.floor is None else np.array(self.floor, dtype=float)
+        if floor.shape != scale.shape or not np.all(np.isfinite(floor)) or np.any(floor < 0.0):
+            raise ValueError(f"interval floor must be non-negative finite variances, one per joint, got {self.floor}")
+        for name, value in (("scale", scale), ("floor", floor)):
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
 
     def apply(self, covariance: np.ndarray) -> np.ndarray:
-        """diag(c) P diag(c) of a (n, n) covariance, N²·m²."""
-        return covariance * np.outer(self.scale, self.scale)
+        """diag(c) P diag(c) of a (n, n) covariance, N²·m², its diagonal raised to at least P_b (a non-negative
+        diagonal added: the result stays positive semi-definite)."""
+        scaled = covariance * np.outer(self.scale, self.scale)
+        diagonal = scaled.flat[:: len(self.scale) + 1]
+        scaled.flat[:: len(self.scale) + 1] = np.maximum(diagonal, self.floor)     # max(c² P_jj, P_b,j)
+        return scaled
 
     def to_dict(self) -> dict[str, Any]:
-        return {"observer": CALIBRATED_OBSERVER, "coverage": COVERAGE, "scale": self.scale.tolist()}
+        return {"observer": CALIBRATED_OBSERVER, "coverage": COVERAGE, "scale": self.scale.tolist(),
+                "floor": self.floor.tolist()}
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> "IntervalScale":
         if values.get("observer") != CALIBRATED_OBSERVER:
             raise ValueError(f"interval scale for observer {values.get('observer')!r}, expected {CALIBRATED_OBSERVER}")
-        return cls(np.asarray(values["scale"], dtype=float))
+        floor = values.get("floor")
+        return cls(np.asarray(values["scale"], dtype=float), None if floor is None else np.asarray(floor, dtype=float))

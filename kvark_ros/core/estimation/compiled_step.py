@@ -14,6 +14,7 @@ import numpy as np
 
 from kvark_ros.core.effect_catalog import TORQUE_EFFECTS
 from kvark_ros.core.estimation.augmentation import Augmentation
+from kvark_ros.core.estimation.calibration import IntervalScale
 from kvark_ros.core.config import EstimatorConfig
 from kvark_ros.core.estimation.model_kernels import augmentation_torque
 from kvark_ros.core.estimation.observers.kvark_kernel import KVARKKernelFilter
@@ -43,9 +44,9 @@ class CompiledStep:
     finite = staticmethod(finite_sample)
 
     def __init__(self, robot: RobotModel, observer: KVARKKernelFilter, tare: Tare, band: np.ndarray | None,
-                 scale: np.ndarray | None, config: EstimatorConfig, z: float) -> None:
-        """``band``: the static friction band F_s (n,) N·m or None; ``scale``: the interval factors c (n,) or None;
-        ``z``: the collision test's z."""
+                 scale: IntervalScale | None, config: EstimatorConfig, z: float) -> None:
+        """``band``: the static friction band F_s (n,) N·m or None; ``scale``: the interval factors c and floor P_b
+        or None; ``z``: the collision test's z."""
         n = self.n = robot.n
         self.robot, self.observer = robot, observer
         self.rows = np.zeros((ROWS, n))
@@ -62,7 +63,8 @@ class CompiledStep:
         if band is not None:
             self.rows[Row.BAND] = band
         if scale is not None:
-            self.rows[Row.SCALE] = scale
+            self.rows[Row.SCALE] = scale.scale
+            self.rows[Row.FLOOR] = scale.floor
         terms, packed = robot.terms, observer.packed
         # The arrays every call passes, bound once: none of them is ever replaced, only written in place.
         self._pinocchio = (terms.gravity, terms.rnea, terms.coriolis)

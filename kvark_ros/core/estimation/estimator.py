@@ -183,8 +183,7 @@ class Estimator:
         if getattr(observer, "compiled", False):
             from kvark_ros.core.estimation.compiled_step import CompiledStep
             self._compiled = CompiledStep(robot, observer, self.tare, None if self._stiction is None
-                                          else self._stiction.band, None if self._interval_scale is None
-                                          else self._interval_scale.scale, config, self.collision.z)
+                                          else self._stiction.band, self._interval_scale, config, self.collision.z)
             self._p_prev, self._u_prev = self._compiled.previous
         self.reset()
 

@@ -164,6 +164,7 @@ class Row(Layout):
     AUG = enum.auto()                   # τ_aug of this sample, N·m
     BAND = enum.auto()                  # the static friction band F_s, N·m
     SCALE = enum.auto()                 # the interval factors c (docs/method.md §4.13)
+    FLOOR = enum.auto()                 # the reported variance's floor P_b, N²·m² (docs/method.md §4.13)
 
 
 ROWS = len(Row)

@@ -17,7 +17,7 @@ from kvark_ros.core.estimation.step_kernel import jit
 
 # sha256 of core/estimation/kernel_layouts.py (its docstring): update it with the file,
 # so numba recompiles these kernels.
-LAYOUTS_DIGEST = "704d18ff06b0686c48c3b3ffe19c00be3041342bbfd5d5ed690a92149aa6f377"
+LAYOUTS_DIGEST = "57ac96fd3c1e9e16ecf47fbc6bae108593eecff104a90660540992b28f7717cd"
 
 
 @jit

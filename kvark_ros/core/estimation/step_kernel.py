@@ -55,7 +55,7 @@ from kvark_ros.core.estimation.kernel_layouts import (CONST_ROWS, PARAMS, VEC_RO
 
 # sha256 of core/estimation/kernel_layouts.py (module docstring): update it with the file,
 # so numba recompiles the kernels.
-LAYOUTS_DIGEST = "704d18ff06b0686c48c3b3ffe19c00be3041342bbfd5d5ed690a92149aa6f377"
+LAYOUTS_DIGEST = "57ac96fd3c1e9e16ecf47fbc6bae108593eecff104a90660540992b28f7717cd"
 
 
 def jit(function: Callable) -> Callable:
@@ -535,10 +535,11 @@ def estimate_step(flags: int, dt: float, qd: np.ndarray, tau_m: np.ndarray, grav
     ``rows`` for the next sample), FILTER (``kvark_step`` on the packed filter state ``state``, ``ints``,
     ``constants``, ``options``), POST (the rest, into ``tau``, ``tau_cov``, ``wrench``, ``wrench_cov``), and the
     settings TARED (subtract ``offset``), STICTION (widen by the band in ``rows[Row.BAND]``), SCALED (report P scaled
-    by ``rows[Row.SCALE]``), END_EFFECTOR (wrench in the axes of ``rotation``), AUGMENTED (subtract
-    ``rows[Row.AUG]`` = τ_aug). ``jac``: J (6, n) in base axes; ``params``: δ, the wrench prior, v_s, z
-    (``EstimatorParam``). Returns (code: ``Outcome`` bits WEAK | DIVERGED | SINGULAR, the contact statistic (NaN: S
-    not positive definite), the collision excess (NaN: not finite)); with WEAK or SINGULAR, F and Σ_F are not final.
+    by ``rows[Row.SCALE]``, at least ``rows[Row.FLOOR]``), END_EFFECTOR (wrench in the axes of ``rotation``),
+    AUGMENTED (subtract ``rows[Row.AUG]`` = τ_aug). ``jac``: J (6, n) in base axes; ``params``: δ, the wrench prior,
+    v_s, z (``EstimatorParam``). Returns (code: ``Outcome`` bits WEAK | DIVERGED | SINGULAR, the contact statistic
+    (NaN: S not positive definite), the collision excess (NaN: not finite)); with WEAK or SINGULAR, F and Σ_F are not
+    final.
     """
     n = qd.shape[0]
     if flags & Flag.MOMENTUM:
@@ -552,7 +553,7 @@ def estimate_step(flags: int, dt: float, qd: np.ndarray, tau_m: np.ndarray, grav
         return 0, np.nan, np.nan
     vec = split_state(state, n, options[Option.SNAPSHOTS], options[Option.ONSETS])[0]
     filtered, c, residual_var = vec[Vec.TAU], vec[Vec.C], vec[Vec.VAR]
-    band, factors = rows[Row.BAND], rows[Row.SCALE]
+    band, factors, floor = rows[Row.BAND], rows[Row.SCALE], rows[Row.FLOOR]
     velocity, z = params[EstimatorParam.STICTION_VELOCITY], params[EstimatorParam.Z]
     variance = np.empty(n)
     tau_cov[:, :] = 0.0
@@ -566,7 +567,10 @@ def estimate_step(flags: int, dt: float, qd: np.ndarray, tau_m: np.ndarray, grav
             widened += sticking
         variance[j] = widened                                                   # reported Cov τ̂, Σ_F's source
         if flags & Flag.SCALED:
-            variance[j] = c[j] * (factors[j] * factors[j]) + sticking           # diag(c) P diag(c) + σ²_s (§4.13)
+            scaled = c[j] * (factors[j] * factors[j])                           # diag(c) P diag(c) (§4.13)
+            if scaled < floor[j]:
+                scaled = floor[j]                                               # at least P_b (§4.13)
+            variance[j] = scaled + sticking                                     # + σ²_s
         tau_cov[j, j] = variance[j]
         s_jj = widened + residual_var[j]                                        # S = P + diag σ²_r (§7.2)
         if s_jj > 0.0:

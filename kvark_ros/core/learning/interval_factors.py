@@ -1,8 +1,9 @@
 """Reading K-VARK's interval factors c from contact-free training recordings (docs/method.md §4.13).
 
 On contact-free data the true τ_ext is zero, so τ̂ itself is the error: c_j is the factor that puts ``COVERAGE`` of
-the training τ̂_j inside the reported interval ±1.96 √(c_j² σ_j² + σ²_s,j) (``core.estimation.calibration``, which
-holds and applies the factors).
+the training τ̂_j inside ±1.96 √(c_j² σ_j² + σ²_s,j) (``core.estimation.calibration``, which holds and applies the
+factors). The estimator reports at least the floor P_b, the fixed-Σ_d ``kf``'s steady-state variance
+(``variance_floor``), which can only widen that interval.
 """
 from __future__ import annotations
 
@@ -17,19 +18,43 @@ WARMUP = 0.5                  # s at the start of every recording left out (the 
 SCALE_BOUNDS = (0.05, 20.0)   # a factor beyond these says the noise model is broken, not miscalibrated
 
 
+FLOOR_SECONDS = 2.0           # s of zero input the ``kf`` runs to reach its steady state (40 time constants at ω_b)
+
+
 def needed_factor(tau_hat: np.ndarray, sigma: np.ndarray, band_variance: np.ndarray) -> np.ndarray:
     """The least c that puts each |τ̂| inside ±1.96 √(c² σ² + σ²_s), all (T, n) (τ̂ in N·m, σ in N·m, σ²_s in
     N²·m²): c_k = √(max((|τ̂_k|/1.96)² − σ²_s,k, 0)) / σ_k. A sample is inside at c exactly when c ≥ c_k, so the
-    ``COVERAGE`` quantile of c_k is the factor that covers that share of the samples."""
+    ``COVERAGE`` quantile of c_k is the factor that covers that share of the samples (the floor P_b is left out: it
+    only widens the interval, and c keeps K-VARK's own P, raised at a contact, in what it reports)."""
     return np.sqrt(np.maximum(np.square(tau_hat / Z95) - band_variance, 0.0)) / sigma
+
+
+def variance_floor(kf: Any, sample_period: float) -> np.ndarray:
+    """P_b (n,) N²·m²: the τ_ext variance the fixed-Σ_d filter ``kf`` (a fresh observer built from the trained model)
+    reports in steady state at ``sample_period`` s, reached by stepping it ``FLOOR_SECONDS`` on zero input (its
+    covariance does not depend on the data). Why a floor (docs/method.md §4.13): the VB reads Σ_d from the last window
+    and a τ_ext that changes steadily but slowly (a payload carried through poses) barely raises it, while the filter
+    at its free-motion prior ω_p lags it; the fixed-Σ_d filter at the contact bandwidth ω_b is the design bound for
+    following τ_ext, and K-VARK never reports τ_ext known better than that filter would."""
+    kf.reset()
+    zeros = np.zeros(kf.n)
+    for _ in range(max(int(round(FLOOR_SECONDS / sample_period)), 2)):
+        _, cov = kf.step(sample_period, zeros, zeros, zeros, zeros, zeros, zeros)
+    kf.reset()
+    floor = np.diag(cov).copy()
+    if not np.all(np.isfinite(floor)) or np.any(floor < 0.0):
+        raise ValueError(f"the kf's steady-state variance is not a finite non-negative number: {floor}")
+    return floor
 
 
 def interval_scale(observer: Any, stamps: Sequence[np.ndarray], qd: Sequence[np.ndarray], q: Sequence[np.ndarray],
                    p: Sequence[np.ndarray], u: Sequence[np.ndarray], g: Sequence[np.ndarray],
-                   band: Callable[[np.ndarray], np.ndarray] | None = None) -> IntervalScale:
+                   band: Callable[[np.ndarray], np.ndarray] | None = None,
+                   floor: np.ndarray | None = None) -> IntervalScale:
     """c from contact-free recordings: per recording stamps (T,) s, q̇, q (T, n), the model's momentum p (T, n)
     N·m·s, its input u (T, n) N·m and gravity torque g (T, n) N·m (``training.SegmentDynamics``); ``band`` maps
-    q̇ (T, n) rad/s to the static friction band's σ²_s (T, n) N²·m² the estimator adds (None: no band).
+    q̇ (T, n) rad/s to the static friction band's σ²_s (T, n) N²·m² the estimator adds (None: no band); ``floor``:
+    the reported variance's floor P_b (n,) N²·m² (``variance_floor``; None: none), carried into the result.
 
     ``observer`` (a fresh K-VARK filter built from the trained model) is reset and stepped over every recording as
     the Estimator steps it; c_j is the 95 % quantile of ``needed_factor`` over the samples after ``WARMUP`` (without
@@ -53,4 +78,4 @@ def interval_scale(observer: Any, stamps: Sequence[np.ndarray], qd: Sequence[np.
     if len(samples) < 100 or not np.all(np.isfinite(samples)):
         raise ValueError(f"interval calibration needs at least 100 finite samples after {WARMUP} s, got "
                          f"{len(samples)}")
-    return IntervalScale(np.clip(np.quantile(samples, COVERAGE, axis=0), *SCALE_BOUNDS))
+    return IntervalScale(np.clip(np.quantile(samples, COVERAGE, axis=0), *SCALE_BOUNDS), floor)

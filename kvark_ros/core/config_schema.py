@@ -174,8 +174,13 @@ KEYS: tuple[Key, ...] = (
          "(docs/method.md §4.11; 0 = off)", runtime=True, **_unit(0.0, 10.0)),
     _key("filter.interval_calibration", "choice", "trained",
          "kvark's reported covariance: trained (scaled by the model's factors from contact-free training data, "
-         "each variance at least the kf's steady state, docs/method.md §4.13) or off (the filter's own P)",
+         "filter.interval_floor applied, docs/method.md §4.13) or off (the filter's own P)",
          runtime=True, choices=("trained", "off")),
+    _key("filter.interval_floor", "choice", "kf",
+         "with interval_calibration trained: kf (each reported variance at least the steady state of the "
+         "fixed-Σ_d kf, so kvark's interval is never narrower than kf's; docs/method.md §4.13) or off (the "
+         "calibrated c² P alone, sharper where free-motion training data tell the whole story)", runtime=True,
+         choices=("kf", "off")),
     _key("filter.huang_tau", "number", 300.0, "prior strength τ of the huang variant",
          **_unit(0.0, 1e6, low_open=True)),
     _key("filter.ewma_time", "number", 0.2,

@@ -66,8 +66,12 @@ class FilterSettings:
     (docs/method.md §4.11; 0 = off). Allowed: a number in [0.0, 10.0]. Can be changed while the node runs."""
     interval_calibration: Literal["trained", "off"] = "trained"
     """kvark's reported covariance: trained (scaled by the model's factors from contact-free training data,
-    docs/method.md §4.13) or off (the filter's own P). Allowed: one of trained, off. Can be changed while the node
-    runs."""
+    filter.interval_floor applied, docs/method.md §4.13) or off (the filter's own P). Allowed: one of trained, off. Can
+    be changed while the node runs."""
+    interval_floor: Literal["kf", "off"] = "kf"
+    """with interval_calibration trained: kf (each reported variance at least the steady state of the fixed-Σ_d kf, so
+    kvark's interval is never narrower than kf's; docs/method.md §4.13) or off (the calibrated c² P alone, sharper where
+    free-motion training data tell the whole story). Allowed: one of kf, off. Can be changed while the node runs."""
     huang_tau: float = 300.0
     """prior strength τ of the huang variant. Allowed: a number in (0.0, 1000000.0]."""
     ewma_time: float = 0.2

@@ -6,10 +6,11 @@ one worker process per core, pinned to its core): simulate its free-motion train
 and collision test bags (``sim_bags.simulate_bags``), train on the nominal model, diagnose and train on the
 augmented model (``train_on_diagnosis``, as ``benchmark --augment``), and replay kvark, kf, momentum and the oracle
 (which gets the robot's plant file) on the nominal model and kvark, kf, momentum on the augmented one
-(``evaluate_task``, the task ``kvark evaluate`` runs). The figures are then pooled into distributions over
-robots × scenes ("cells"): median, 90th percentile (the value 90 % of the cells do better than) and worst, per
-arm class and pooled, and checked against ``acceptance_lines``. ``results.json`` and ``report.md`` go into --out
-(``staged_directory``), each robot's bags, plant, models and log under ``robots/<arm>_<index>``.
+(``evaluate_task``, the task ``kvark evaluate`` runs), and diagnose its payload scene against the augmented model
+(``flange_mass``: is the new load named a payload, of the drawn mass?). The figures are then pooled into
+distributions over robots × scenes ("cells"): median, 90th percentile (the value 90 % of the cells do better than)
+and worst, per arm class and pooled, and checked against ``acceptance_lines``. ``results.json`` and ``report.md``
+go into --out (``staged_directory``), each robot's bags, plant, models and log under ``robots/<arm>_<index>``.
 """
 from __future__ import annotations
 
@@ -41,6 +42,7 @@ ORACLE_LIMIT = 1.3
 JOINT_COVERAGE_MEDIAN = 0.90
 POOLED_COVERAGE = (0.90, 0.98)
 COVERAGE_WORST_DECILE = 0.85
+FLANGE_MASS_TOLERANCE = 0.10   # the identified payload mass within 10 % of the drawn one
 SEED_STRIDE = 100000        # simulation seeds of robot i of population S: S·SEED_STRIDE + 200·i + …
 
 
@@ -116,6 +118,7 @@ def run_robot(robot: PopulationRobot, plan: BenchmarkPlan, folder: str) -> dict[
                 for observer in AUGMENTED_OBSERVERS:
                     scenes[name]["augmented"][observer] = _figures(
                         evaluate_task(augmented, str(bag.resolve()), observer).metrics)
+            augmentation["flange_mass"] = flange_mass(config, out, test_bags["payload"], robot.payload_kg, log)
         except Exception as exc:       # a diagnosis that fails leaves the nominal figures standing, and says why
             augmentation = {"error": f"{type(exc).__name__}: {exc}"}
             log(f"[population] diagnosis failed: {augmentation['error']}\n{traceback.format_exc()}")
@@ -125,6 +128,31 @@ def run_robot(robot: PopulationRobot, plan: BenchmarkPlan, folder: str) -> dict[
                       "payload_kg": robot.payload_kg, "description": robot.description, "label": robot.label,
                       "plant": robot.plant, "payload": robot.payload},
             "augmentation": augmentation, "scenes": scenes, "seconds": round(time.perf_counter() - started, 1)}
+
+
+def flange_mass(config: Any, folder: Path, payload_bag: Path, true_mass: float,
+                log: Callable[[str], None]) -> dict[str, Any]:
+    """``kvark diagnose --against`` the robot's diagnosed model on its payload scene: whether the new load is named
+    a payload, and its mass change at the flange (kg, the identifiable combination, ``gap.plausibility``) against
+    the drawn payload's mass. The diagnosis goes to ``folder/payload_diagnosis``."""
+    from kvark_ros.core.estimation.augmentation import load_augmentation
+    from kvark_ros.core.estimation.robot_model import RobotModel
+    from kvark_ros.gap.diagnose import diagnose
+    from kvark_ros.gap.diagnosis_report import write_outputs
+    from kvark_ros.gap.effects import Priors
+    from kvark_ros.io.alignment import read_inputs
+
+    base = load_augmentation(folder / "diagnosis" / "augmentation.yaml", config.joint_names)
+    robot = RobotModel.from_config(config, base)
+    result = diagnose(robot, [read_inputs(payload_bag, config)[1]], log=log,
+                      priors=Priors(torque_measurement=config.torque_measurement))
+    write_outputs(result, robot, folder / "payload_diagnosis", config.robot, plots=False)
+    named = [effect for effect in result.result["effects"] if effect["name"] == "payload"]
+    mass = named[0]["parameters"]["mass_change"] if named else None
+    return {"true_kg": float(true_mass), "named": bool(named), "mass_kg": mass,
+            "relative_error": None if mass is None else abs(mass - true_mass) / true_mass,
+            "effects": [effect["name"] for effect in result.result["effects"]],
+            "warnings": len(result.result["warnings"])}
 
 
 def distribution(values: Sequence[float], higher_is_worse: bool = True) -> dict[str, float | int | None]:
@@ -221,6 +249,13 @@ def acceptance_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[str]
                          f"(≥ {JOINT_COVERAGE_MEDIAN}), worst decile {joint['p90']:.3f} "
                          f"(≥ {COVERAGE_WORST_DECILE}), worst {joint['worst']:.3f} over {joint['count']} "
                          f"joint×cells: {_verdict(ok)}")
+        pairs = [(fig(row, "kvark", "coverage95"), fig(row, "kf", "coverage95")) for row in rows]
+        pairs = [(kvark, kf) for kvark, kf in pairs if kvark is not None and kf is not None]
+        if pairs:
+            below = [kf - kvark for kvark, kf in pairs if kvark < kf]
+            lines.append(f"- {group}, {model}: K-VARK coverage95 at least kf's in {len(pairs) - len(below)} of "
+                         f"{len(pairs)} cells (short by at most {max(below, default=0.0):.3f}): "
+                         f"{_verdict(not below)}")
         if pooled["count"]:
             low, high = POOLED_COVERAGE
             ok = low <= pooled["median"] <= high and pooled["p90"] >= COVERAGE_WORST_DECILE
@@ -230,6 +265,21 @@ def acceptance_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[str]
     return lines
 
 
+def flange_mass_line(robots: Sequence[Mapping[str, Any]], group: str) -> list[str]:
+    """The payload-mass check over ``robots`` (``flange_mass``): how many named the payload with its mass within
+    ``FLANGE_MASS_TOLERANCE``, and the median relative error of those named."""
+    records = [r["augmentation"]["flange_mass"] for r in robots if "flange_mass" in r.get("augmentation", {})]
+    if not records:
+        return []
+    named = [record for record in records if record["named"]]
+    within = sum(record["relative_error"] <= FLANGE_MASS_TOLERANCE for record in named)
+    errors = ", ".join(f"{record['mass_kg']:.2f}/{record['true_kg']:.2f} kg" for record in named) or "none"
+    median = f"median error {np.median([r['relative_error'] for r in named]):.0%}, " if named else ""
+    return [f"- {group}: payload named with its mass within {FLANGE_MASS_TOLERANCE:.0%} on {within} of "
+            f"{len(records)} robots (named on {len(named)}; {median}identified/true: {errors}): "
+            f"{_verdict(within == len(records))}"]
+
+
 def aggregate(robots: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """Per arm class (in order of appearance) and pooled: the cells' distributions and the acceptance lines."""
     from kvark_ros.sim.population import ARM_CLASSES
@@ -237,8 +287,10 @@ def aggregate(robots: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     present = [arm for arm in ARM_CLASSES if any(r["robot"]["arm"] == arm for r in robots)]
     for group in (*present, "pooled"):
         rows = cells(robots, None if group == "pooled" else group)
+        members = [r for r in robots if group == "pooled" or r["robot"]["arm"] == group]
         groups[group] = {"robots": len({row["robot"] for row in rows}), "cells": len(rows),
-                         "distributions": summary(rows), "acceptance": acceptance_lines(rows, group)}
+                         "distributions": summary(rows),
+                         "acceptance": acceptance_lines(rows, group) + flange_mass_line(members, group)}
     return groups
 
 
@@ -266,15 +318,19 @@ def write_report(out: Path, results: Mapping[str, Any]) -> None:
             f"and replayed on its own data. {results['workers']} worker(s), {results['seconds'] / 60:.1f} min.",
             "RMSE: joint RMSE (mean over joints), N·m; `_aug`: on the diagnosed (augmented) model. p90: the value "
             "90 % of the cells do better than (for coverage the 10th percentile).", "", "## Robots", "",
-            "| robot | plant | effects named by the diagnosis | held-out gap (N·m) | time (s) |",
-            "|---|---|---|---|---|"]
+            "| robot | plant | effects named by the diagnosis | held-out gap (N·m) | payload scene against the "
+            "diagnosed model: named (kg, drawn kg) | time (s) |",
+            "|---|---|---|---|---|---|"]
     for result in results["robots"]:
         augmentation = result["augmentation"]
         effects = ", ".join(augmentation.get("effects", [])) or augmentation.get("error", "none")
         gap = (f"{augmentation['gap_before']:.3f} → {augmentation['gap_after']:.3f}" if "gap_before" in augmentation
                else "–")
+        record = augmentation.get("flange_mass")
+        payload = ("–" if record is None else f"{', '.join(record['effects']) or 'nothing'} "
+                   f"({_cell(record['mass_kg'], 2)}, {record['true_kg']:.2f})")
         text.append(f"| {result['robot']['label']} | {result['robot']['description']} | {effects} | {gap} | "
-                    f"{result['seconds']:.0f} |")
+                    f"{payload} | {result['seconds']:.0f} |")
     text += ["", "## Distributions over robots × scenes", ""] + distribution_table(results["groups"])
     text += ["", "## Every cell, joint RMSE (N·m) and coverage95", "",
              "| robot | scene | kvark | kvark_aug | kf | kf_aug | momentum | oracle | cov95 kvark | cov95 kvark_aug |",

@@ -224,8 +224,14 @@ def test_tare_at_rest(config, trained):
 def test_runtime_keys_reach_the_kernel(config, trained, inputs):
     """Run-time keys changed through Estimator.configure mid-run act in the kernel as in the reference."""
     data = inputs["panda_collision"]
-    reference, kernel = _pair(config, replace(trained, interval_scale=IntervalScale(FACTORS)))
-    first = _run(reference, data, 0, 1000), _run(kernel, data, 0, 1000)
+    floor = np.full(7, 0.05)                                 # N²·m²: above c² P on some joints and samples
+    reference, kernel = _pair(config, replace(trained, interval_scale=IntervalScale(FACTORS, floor)))
+    first = _run(reference, data, 0, 500), _run(kernel, data, 0, 500)
+    for estimator in (reference, kernel):                    # the floor switched off mid-run, then the factors
+        estimator.configure(replace(estimator.config, filter=replace(estimator.config.filter, interval_floor="off")))
+    unfloored = _run(reference, data, 500, 1000), _run(kernel, data, 500, 1000)
+    variances = [[e.tau_cov[j, j] for e in run if e is not None for j in range(7)] for run in (first[1], unfloored[1])]
+    assert min(variances[0]) >= 0.05 - 1e-12 and min(variances[1]) < 0.05     # floored, then not
     for estimator in (reference, kernel):
         changed = estimator.config
         changed = replace(changed, filter=replace(changed.filter, ewma_time=0.05, stiction_velocity=0.1,
@@ -235,6 +241,7 @@ def test_runtime_keys_reach_the_kernel(config, trained, inputs):
         estimator.configure(changed)
     second = _run(reference, data, 1000), _run(kernel, data, 1000)
     _assert_equal_to_rounding(*first)
+    _assert_equal_to_rounding(*unfloored)
     _assert_equal_to_rounding(*second)
     assert kernel.observer.ewma_rate == reference.observer.ewma_rate == pytest.approx(0.002 / 0.05)
     assert any(e.collision for e in second[0] if e is not None)

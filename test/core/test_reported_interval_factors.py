@@ -171,6 +171,9 @@ def test_the_estimator_reports_the_scaled_covariance_and_its_flags_do_not_move(p
                                        stream)
     np.testing.assert_allclose(np.diagonal(floored, axis1=1, axis2=2), np.maximum(variances, floor), rtol=1e-12)
     assert floored_flags == raw_flags
+    unfloored = replace(config, filter=replace(config.filter, interval_floor="off"))      # the key switches it off
+    np.testing.assert_allclose(_reported(unfloored, panda, replace(trained, interval_scale=IntervalScale(c, floor)),
+                                         stream)[0], scaled, rtol=1e-12)
 
 
 def test_training_calibrates_the_intervals_on_its_own_recordings(panda_trained):

@@ -43,12 +43,13 @@ class IntervalScale:
             value.setflags(write=False)
             object.__setattr__(self, name, value)
 
-    def apply(self, covariance: np.ndarray) -> np.ndarray:
-        """diag(c) P diag(c) of a (n, n) covariance, N²·m², its diagonal raised to at least P_b (a non-negative
-        diagonal added: the result stays positive semi-definite)."""
+    def apply(self, covariance: np.ndarray, floored: bool = True) -> np.ndarray:
+        """diag(c) P diag(c) of a (n, n) covariance, N²·m², with ``floored`` its diagonal raised to at least P_b (a
+        non-negative diagonal added: the result stays positive semi-definite)."""
         scaled = covariance * np.outer(self.scale, self.scale)
-        diagonal = scaled.flat[:: len(self.scale) + 1]
-        scaled.flat[:: len(self.scale) + 1] = np.maximum(diagonal, self.floor)     # max(c² P_jj, P_b,j)
+        if floored:
+            diagonal = scaled.flat[:: len(self.scale) + 1]
+            scaled.flat[:: len(self.scale) + 1] = np.maximum(diagonal, self.floor)     # max(c² P_jj, P_b,j)
         return scaled
 
     def to_dict(self) -> dict[str, Any]:

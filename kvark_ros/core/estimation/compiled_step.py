@@ -64,7 +64,6 @@ class CompiledStep:
             self.rows[Row.BAND] = band
         if scale is not None:
             self.rows[Row.SCALE] = scale.scale
-            self.rows[Row.FLOOR] = scale.floor
         terms, packed = robot.terms, observer.packed
         # The arrays every call passes, bound once: none of them is ever replaced, only written in place.
         self._pinocchio = (terms.gravity, terms.rnea, terms.coriolis)
@@ -74,13 +73,15 @@ class CompiledStep:
         self._compile()
 
     def configure(self, config: EstimatorConfig, z: float) -> None:
-        """Take the run-time keys wrench.*, filter.stiction_velocity and filter.interval_calibration, and the
-        collision's z."""
+        """Take the run-time keys wrench.*, filter.stiction_velocity, filter.interval_calibration and
+        filter.interval_floor, and the collision's z."""
         velocity, wrench = config.filter.stiction_velocity, config.wrench
         self.params[:] = pack(EstimatorParam, {
             EstimatorParam.DAMPING: wrench.damping, EstimatorParam.PRIOR_FORCE: wrench.prior_force,
             EstimatorParam.PRIOR_MOMENT: wrench.prior_moment, EstimatorParam.STICTION_VELOCITY: velocity,
             EstimatorParam.Z: z})
+        if self._scale is not None:      # the floor P_b, or none (zeros) with filter.interval_floor off
+            self.rows[Row.FLOOR] = self._scale.floor if config.filter.interval_floor == "kf" else 0.0
         self._flags = ((Flag.STICTION if self._band is not None and velocity != 0.0 else 0)
                        | (Flag.SCALED if self._scale is not None and config.filter.interval_calibration == "trained"
                           else 0)

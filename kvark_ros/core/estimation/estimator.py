@@ -356,7 +356,8 @@ class Estimator:
                 widened.flat[:: n + 1] += sticking             # Cov τ̂ + diag σ²_s(q̇) (docs/method.md §4.11)
             reported = widened
             if self._interval_scale is not None and self.config.filter.interval_calibration == "trained":
-                reported = self._interval_scale.apply(tau_cov)     # diag(c) P diag(c), new (docs/method.md §4.13)
+                # diag(c) P diag(c), at least P_b with filter.interval_floor kf, new (docs/method.md §4.13)
+                reported = self._interval_scale.apply(tau_cov, self.config.filter.interval_floor == "kf")
                 if sticking is not None:
                     reported.flat[:: n + 1] += sticking
         wrench, wrench_cov, weak, rotation, jacobian = self._solve_wrench(q, tau_ext, reported)

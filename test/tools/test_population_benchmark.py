@@ -90,3 +90,37 @@ def test_augmented_lines_use_the_nominal_figures_where_the_diagnosis_did_not_run
     lines = aggregate(robots)["ur5"]["acceptance"]
     assert ("- ur5, augmented (1 of 2 cells diagnosed, nominal elsewhere): median K-VARK / kf joint RMSE = 0.65 "
             "over 2 of 2 cells with oracle ≤ 0.7 × kf (≤ 0.8: pass)") in lines                # median of 0.4 and 0.9
+
+
+def _weighed(robot: dict, true_kg: float, mass_kg: float | None) -> dict:
+    record = {"true_kg": true_kg, "named": mass_kg is not None, "mass_kg": mass_kg, "effects": [],
+              "relative_error": None if mass_kg is None else abs(mass_kg - true_kg) / true_kg, "warnings": 0}
+    robot["augmentation"] = {"flange_mass": record}
+    return robot
+
+
+def test_the_flange_mass_line_counts_payloads_named_within_ten_percent() -> None:
+    """2.0 kg read as 2.19 (9.5 %: within), 1.0 as 1.11 (11 %: outside), 0.5 not named: 1 of 3 robots, FAIL; the
+    Panda alone passes. Robots without a payload diagnosis give no line."""
+    scene = {"payload": _scene(0.5, 1.0, 1.0, 0.6)}
+    robots = [_weighed(_robot(0, "panda", scene), 2.0, 2.19), _weighed(_robot(1, "ur5", scene), 1.0, 1.11),
+              _weighed(_robot(2, "ur10", scene), 0.5, None)]
+    groups = aggregate(robots)
+    pooled = [line for line in groups["pooled"]["acceptance"] if "payload named" in line]
+    assert pooled == ["- pooled: payload named with its mass within 10% on 1 of 3 robots (named on 2; median error "
+                      "10%, identified/true: 2.19/2.00 kg, 1.11/1.00 kg): FAIL"]
+    assert groups["panda"]["acceptance"][-1].endswith("on 1 of 1 robots (named on 1; median error 9%, "
+                                                      "identified/true: 2.19/2.00 kg): pass")
+    assert not any("payload named" in line for line in aggregate([_robot(0, "ur5", scene)])["pooled"]["acceptance"])
+
+
+def test_the_coverage_line_compares_kvark_with_kf_cell_by_cell() -> None:
+    """kvark 0.95 against kf 0.94 (at least), 0.90 against 0.93 (short by 0.03): 1 of 2, FAIL."""
+    def scene(kvark: float, kf: float) -> dict:
+        entry = _scene(0.5, 1.0, 1.0, 0.6, coverage=kvark)
+        entry["nominal"]["kf"]["coverage95"] = kf
+        return entry
+
+    robots = [_robot(0, "ur5", {"payload": scene(0.95, 0.94), "contact": scene(0.90, 0.93)})]
+    lines = aggregate(robots)["ur5"]["acceptance"]
+    assert "- ur5, nominal: K-VARK coverage95 at least kf's in 1 of 2 cells (short by at most 0.030): FAIL" in lines

@@ -69,6 +69,8 @@ def observer_figures(metrics: dict) -> dict:
     return {"joint_rmse": metrics.get("joint_rmse_mean"), "force_rmse": metrics.get("force_rmse_mean"),
             "coverage95": metrics.get("coverage95"),
             "coverage95_min_joint": None if per_joint is None else min(per_joint),
+            "interval95": None if metrics.get("interval95_per_joint") is None
+            else sum(metrics["interval95_per_joint"]) / len(metrics["interval95_per_joint"]),
             "vector_coverage95": metrics.get("vector_coverage95"),
             "any_joint_miss": metrics.get("any_joint_miss_share"),
             "false_contact": (metrics.get("contact") or {}).get("false_contact_share")}
@@ -143,13 +145,13 @@ def render_real(data: dict) -> str:
              f"{data['samples']['held_out']} at about {data['rate_hz']:.0f} Hz with a true τ_ext of zero. Diagnosis: "
              f"{', '.join(data['effects'])}; held-out gap {data['gap'][0]:.2f} → {data['gap'][1]:.2f} N·m. "
              "Nominal model / augmented model:", "",
-             "| observer | false τ_ext (N·m) | false force (N) | coverage95 of 0 | vector coverage95 "
-             "| any-joint miss | false contact |", "|---|---|---|---|---|---|---|"]
+             "| observer | false τ_ext (N·m) | false force (N) | coverage95 of 0 | mean 1.96 σ (N·m) "
+             "| vector coverage95 | any-joint miss | false contact |", "|---|---|---|---|---|---|---|---|"]
     for name, nominal in data["nominal"].items():
         augmented = data["augmented"][name]
-        cells = [f"{number(nominal[key], digits)} / {number(augmented[key], digits)}"
-                 if nominal[key] is not None else "–"
-                 for key, digits in (("joint_rmse", 3), ("force_rmse", 2), ("coverage95", 3),
+        cells = [f"{number(nominal.get(key), digits)} / {number(augmented.get(key), digits)}"
+                 if nominal.get(key) is not None else "–"
+                 for key, digits in (("joint_rmse", 3), ("force_rmse", 2), ("coverage95", 3), ("interval95", 2),
                                      ("vector_coverage95", 3), ("any_joint_miss", 3), ("false_contact", 3))]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

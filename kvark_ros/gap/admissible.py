@@ -102,10 +102,23 @@ def bad_bodies(fitter: Fitter, terms: Sequence[Term], theta: np.ndarray) -> list
     return bad
 
 
+def point_mass_moments(theta: np.ndarray) -> np.ndarray:
+    """Prior mean (10,) of a payload θ = [m, m c, I about the origin: ixx ixy iyy ixz iyz izz]: zero mass and first
+    moments, and the second moments of a point mass m at c, m (|c|² E − c cᵀ), the least inertia a body of that
+    mass and centre can have about the origin (a body's inertia about its centre is positive semi-definite)."""
+    m = float(theta[0])
+    com = np.asarray(theta[1:4], dtype=float) / m if m != 0.0 else np.zeros(3)
+    inertia = m * (float(com @ com) * np.eye(3) - np.outer(com, com))
+    return np.concatenate([np.zeros(4), inertia[[0, 0, 1, 0, 1, 2], [0, 1, 1, 2, 2, 2]]])
+
+
 def consistent(fitter: Fitter, terms: Sequence[Term], *fit: np.ndarray) -> tuple:
     """A fit of ``terms`` refitted until every body its payload and link_inertia terms change is physically
     consistent: the prior of each offending body is tightened toward the URDF (σ set to ``first_prior`` where it
-    was ∞, else halved; at most ``MAX_PRIOR_HALVINGS`` times). Returns the last fit (check it with ``bad_bodies``).
+    was ∞, else halved; at most ``MAX_PRIOR_HALVINGS`` times), a payload's second moments toward those of a point
+    mass of its fitted mass and centre (``point_mass_moments``: shrinking them toward zero about the flange origin
+    would put a massive payload's inertia about its own centre below zero). Returns the last fit (check it with
+    ``bad_bodies``).
 
     The data identify only some combinations of a link's parameters (a base link turning about z shows only
     its I_zz); the others follow the prior, and a prior loose enough for the identified ones can let them
@@ -118,6 +131,10 @@ def consistent(fitter: Fitter, terms: Sequence[Term], *fit: np.ndarray) -> tuple
             break
         for index, body, _ in bad:
             name = terms[index].name
+            if name == "payload":      # its second moments pulled toward a point mass of its fitted mass and CoM
+                start = sum(term.size for term in terms[:index])
+                fitter.prior_mean[name] = point_mass_moments(terms[index].full_theta(
+                    fit[0][start:start + terms[index].size]))
             scale = fitter.prior_scale[name].copy()
             block = slice(0, 10) if name == "payload" else slice(10 * body, 10 * body + 10)
             first = fitter.first_prior[name][block]

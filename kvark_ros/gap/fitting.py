@@ -16,6 +16,7 @@ class Fitter:
     def __init__(self, train: Signals, held: Signals, weights: np.ndarray, priors: Priors) -> None:
         self.train, self.held, self.w, self.priors = train, held, weights, priors
         self.prior_scale: dict[str, np.ndarray] = {}   # Gaussian prior σ of payload / link_inertia θ (∞: none)
+        self.prior_mean: dict[str, np.ndarray] = {}    # and its mean (absent: 0, the URDF)
         self.first_prior: dict[str, np.ndarray] = {}   # σ a body's prior starts from when first tightened
         self.flange = np.zeros(10)                      # URDF parameters of the flange link (joint frame)
         self.flange_map = np.eye(10)                    # flange frame → that joint frame (payload θ)
@@ -67,12 +68,16 @@ class Fitter:
         hi = np.concatenate([term.bounds(self.priors)[1] for term in terms])
         rows = self.t * self.n
         pos = 0
-        for term in terms:     # Gaussian priors toward the URDF: rows Δπ/σ = 0 (weighted units), σ = ∞: no row
+        for term in terms:     # Gaussian priors: rows (Δπ − μ)/σ = 0 (weighted units; μ = 0: the URDF), σ = ∞: no row
             if term.name in self.prior_scale:
                 scale = self.prior_scale[term.name]
-                scale = scale[term.parameter_index()] if term.name == "payload" else scale
-                index = pos + np.flatnonzero(np.isfinite(scale))
-                gram[index, index] += 1.0 / np.square(scale[np.isfinite(scale)])
+                mean = self.prior_mean.get(term.name, np.zeros_like(scale))
+                if term.name == "payload":
+                    scale, mean = scale[term.parameter_index()], mean[term.parameter_index()]
+                finite = np.isfinite(scale)
+                index = pos + np.flatnonzero(finite)
+                gram[index, index] += 1.0 / np.square(scale[finite])
+                moment[index] += mean[finite] / np.square(scale[finite])
                 rows += len(index)
             pos += term.size
         scale = np.sqrt(np.diag(gram) / rows) + 1e-12                # column scaling for conditioning

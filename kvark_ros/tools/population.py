@@ -254,7 +254,7 @@ def acceptance_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[str]
         if pairs:
             below = [kf - kvark for kvark, kf in pairs if kvark < kf]
             lines.append(f"- {group}, {model}: K-VARK coverage95 at least kf's in {len(pairs) - len(below)} of "
-                         f"{len(pairs)} cells (short by at most {max(below, default=0.0):.3f}): "
+                         f"{len(pairs)} cells (short by at most {max(below, default=0.0):.4f}): "
                          f"{_verdict(not below)}")
         if pooled["count"]:
             low, high = POOLED_COVERAGE

@@ -123,4 +123,4 @@ def test_the_coverage_line_compares_kvark_with_kf_cell_by_cell() -> None:
 
     robots = [_robot(0, "ur5", {"payload": scene(0.95, 0.94), "contact": scene(0.90, 0.93)})]
     lines = aggregate(robots)["ur5"]["acceptance"]
-    assert "- ur5, nominal: K-VARK coverage95 at least kf's in 1 of 2 cells (short by at most 0.030): FAIL" in lines
+    assert "- ur5, nominal: K-VARK coverage95 at least kf's in 1 of 2 cells (short by at most 0.0300): FAIL" in lines

@@ -49,12 +49,10 @@ def variance_floor(kf: Any, sample_period: float) -> np.ndarray:
 
 def interval_scale(observer: Any, stamps: Sequence[np.ndarray], qd: Sequence[np.ndarray], q: Sequence[np.ndarray],
                    p: Sequence[np.ndarray], u: Sequence[np.ndarray], g: Sequence[np.ndarray],
-                   band: Callable[[np.ndarray], np.ndarray] | None = None,
-                   floor: np.ndarray | None = None) -> IntervalScale:
+                   band: Callable[[np.ndarray], np.ndarray] | None = None) -> IntervalScale:
     """c from contact-free recordings: per recording stamps (T,) s, q̇, q (T, n), the model's momentum p (T, n)
     N·m·s, its input u (T, n) N·m and gravity torque g (T, n) N·m (``training.SegmentDynamics``); ``band`` maps
-    q̇ (T, n) rad/s to the static friction band's σ²_s (T, n) N²·m² the estimator adds (None: no band); ``floor``:
-    the reported variance's floor P_b (n,) N²·m² (``variance_floor``; None: none), carried into the result.
+    q̇ (T, n) rad/s to the static friction band's σ²_s (T, n) N²·m² the estimator adds (None: no band).
 
     ``observer`` (a fresh K-VARK filter built from the trained model) is reset and stepped over every recording as
     the Estimator steps it; c_j is the 95 % quantile of ``needed_factor`` over the samples after ``WARMUP`` (without
@@ -78,4 +76,4 @@ def interval_scale(observer: Any, stamps: Sequence[np.ndarray], qd: Sequence[np.
     if len(samples) < 100 or not np.all(np.isfinite(samples)):
         raise ValueError(f"interval calibration needs at least 100 finite samples after {WARMUP} s, got "
                          f"{len(samples)}")
-    return IntervalScale(np.clip(np.quantile(samples, COVERAGE, axis=0), *SCALE_BOUNDS), floor)
+    return IntervalScale(np.clip(np.quantile(samples, COVERAGE, axis=0), *SCALE_BOUNDS))

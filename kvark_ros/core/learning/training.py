@@ -355,7 +355,7 @@ def calibrate_intervals(trained: TrainedModel, data: TrainingData, settings: Fil
                               [seg.stamp[row] for seg, _, row in kept], [seg.qd[row] for seg, _, row in kept],
                               [seg.q[row] for seg, _, row in kept], [dyn.p[row] for _, dyn, row in kept],
                               [dyn.u[row] for _, dyn, row in kept], [dyn.g[row] for _, dyn, row in kept],
-                              band, floor).scale
+                              band).scale
 
     in_sample = factors(trained, [np.ones(len(seg.stamp), bool) for seg in data.segments])
     scale, out, seconds = in_sample, None, 0.0

@@ -11,7 +11,7 @@ import numpy as np
 
 from kvark_ros.core.effect_catalog import BODY_EFFECTS, EFFECTS_BY_NAME, PRIOR_BOUNDED
 from kvark_ros.core.estimation.payload import inertia_problem
-from kvark_ros.gap.effects import Priors, Term
+from kvark_ros.gap.effects import Priors, Term, theta_split
 from kvark_ros.gap.fitting import Fitter
 from kvark_ros.gap.priors import FAR_BEYOND
 
@@ -94,11 +94,9 @@ def inconsistent_bodies(fitter: Fitter, term: Term, theta: np.ndarray) -> list[t
 def bad_bodies(fitter: Fitter, terms: Sequence[Term], theta: np.ndarray) -> list[tuple[int, int, str]]:
     """(term index, body index, problem) of every body the payload or link_inertia terms of a joint fit θ make
     physically impossible."""
-    bad, pos = [], 0
-    for index, term in enumerate(terms):
-        found = inconsistent_bodies(fitter, term, theta[pos:pos + term.size])
-        bad += [(index, body, problem) for body, problem in found]
-        pos += term.size
+    bad = []
+    for index, (term, own) in enumerate(zip(terms, theta_split(terms, theta))):
+        bad += [(index, body, problem) for body, problem in inconsistent_bodies(fitter, term, own)]
     return bad
 
 
@@ -132,9 +130,8 @@ def consistent(fitter: Fitter, terms: Sequence[Term], *fit: np.ndarray) -> tuple
         for index, body, _ in bad:
             name = terms[index].name
             if name == "payload":      # its second moments pulled toward a point mass of its fitted mass and CoM
-                start = sum(term.size for term in terms[:index])
                 fitter.prior_mean[name] = point_mass_moments(terms[index].full_theta(
-                    fit[0][start:start + terms[index].size]))
+                    theta_split(terms, fit[0])[index]))
             scale = fitter.prior_scale[name].copy()
             block = slice(0, 10) if name == "payload" else slice(10 * body, 10 * body + 10)
             first = fitter.first_prior[name][block]

@@ -61,6 +61,7 @@ from kvark_ros.gap.effects import (
     link_prior_scale,
     physical_parameters,
     signals,
+    theta_split,
     variants,
 )
 from kvark_ros.gap.admissible import (
@@ -82,7 +83,6 @@ from kvark_ros.gap.plausibility import (
     look_alikes,
     plausibility_warnings,
     raw_gap,
-    theta_split,
 )
 from kvark_ros.io.alignment import add_sample_options, load_recordings
 

@@ -266,6 +266,12 @@ def variants(name: str, priors: Priors | None = None) -> list[dict[str, float]]:
     return [dict(zip(grid, map(float, values))) for values in product(*grid.values())]
 
 
+def theta_split(terms: Sequence[Term], theta: np.ndarray) -> list[np.ndarray]:
+    """θ of a joint fit cut into each term's parameters."""
+    cuts = np.cumsum([0] + [term.size for term in terms])
+    return [theta[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
+
+
 def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None) -> tuple[dict, dict]:
     """Parameters in physical units and their 95 % half-widths (delta method for derived ones)."""
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)) if cov is not None else np.full(len(theta), np.nan)

@@ -29,12 +29,6 @@ REGROUPED = 1e-6         # relative residual below which the flange mass is a co
 RAW_QDD_WINDOW = 0.05    # s: q̈ from a 50 ms Savitzky-Golay derivative of q̇; τ_m not filtered at all
 
 
-def theta_split(terms: Sequence[Term], theta: np.ndarray) -> list[np.ndarray]:
-    """θ of a joint fit cut into each term's parameters."""
-    cuts = np.cumsum([0] + [term.size for term in terms])
-    return [theta[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
-
-
 def _value(name: str, theta: np.ndarray) -> str:
     """A per-joint effect's parameters (θ of one joint) as the report states them."""
     if name == "drive_gain":

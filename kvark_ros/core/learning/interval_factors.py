@@ -32,10 +32,10 @@ def needed_factor(tau_hat: np.ndarray, sigma: np.ndarray, band_variance: np.ndar
 def variance_floor(kf: Any, sample_period: float) -> np.ndarray:
     """P_b (n,) N²·m²: the τ_ext variance the fixed-Σ_d filter ``kf`` (a fresh observer built from the trained model)
     reports in steady state at ``sample_period`` s, reached by stepping it ``FLOOR_SECONDS`` on zero input (its
-    covariance does not depend on the data). Why a floor (docs/method.md §4.13): the VB reads Σ_d from the last window
-    and a τ_ext that changes steadily but slowly (a payload carried through poses) barely raises it, while the filter
-    at its free-motion prior ω_p lags it; the fixed-Σ_d filter at the contact bandwidth ω_b is the design bound for
-    following τ_ext, and K-VARK never reports τ_ext known better than that filter would."""
+    covariance does not depend on the data). Why a floor (docs/method.md §4.13): under a load carried through poses
+    the training never visited, the model misfit is larger than free motion shows; kvark and ``kf`` then make the
+    same error, and only ``kf``'s wider steady state (Σ_d sized for a contact at ω_b) covered it on the simulated
+    population's URs. K-VARK never reports τ_ext known better than that filter would."""
     kf.reset()
     zeros = np.zeros(kf.n)
     for _ in range(max(int(round(FLOOR_SECONDS / sample_period)), 2)):

@@ -30,6 +30,7 @@ from kvark_ros.core.estimation.observers.kvark_momentum import KVARKMomentumFilt
 from kvark_ros.core.estimation.observers.momentum_observers import joseph_update
 from kvark_ros.core.estimation.observers.onset import OnsetDetector
 from kvark_ros.core.estimation.observers.window_vb import WINDOW_MAX_RATIO, WINDOW_SNAPSHOTS, WindowVB
+from kvark_ros.core.estimation.step_kernel import ONSET_EVIDENCE
 
 
 class ReferenceWindowVB(WindowVB):
@@ -84,16 +85,16 @@ class ReferenceWindowVB(WindowVB):
 @dataclass(frozen=True)
 class Jump:
     """Jumps accepted at one step, on ``joints`` (J,): the filter adds ``e_p · size`` to p̂,
-    ``e_t · size`` to τ̂ and ``e eᵀ / information`` to each joint's P (onset.py's docstring).
+    ``e_t · size`` to τ̂ and ``e eᵀ · variance`` to each joint's P (onset.py's docstring).
 
-    e_p, e_t: e⁺_k of the accepted onset θ (J,); size: Δ̂_θ (J,) N·m; information: C_θ (J,).
+    e_p, e_t: e⁺_k of the accepted onset θ (J,); size: Δ̂_θ (J,) N·m; variance: Var Δ̂_θ (J,) N²·m².
     """
 
     joints: np.ndarray
     e_p: np.ndarray
     e_t: np.ndarray
     size: np.ndarray
-    information: np.ndarray
+    variance: np.ndarray
 
 
 class ReferenceOnsetDetector(OnsetDetector):
@@ -121,7 +122,10 @@ class ReferenceOnsetDetector(OnsetDetector):
             joints = np.flatnonzero(ratio.max(axis=1) > self.threshold)
             theta = ratio[joints].argmax(axis=1)
             information = c[joints, theta]
-            jump = Jump(joints, ep[joints, theta], et[joints, theta], d[joints, theta] / information, information)
+            size = d[joints, theta] / information                       # Δ̂_θ
+            one_sample = (self.slot - 1 - theta) % d.shape[1] < ONSET_EVIDENCE   # a step or an impulse
+            variance = 1.0 / information + np.where(one_sample, size * size, 0.0)
+            jump = Jump(joints, ep[joints, theta], et[joints, theta], size, variance)
             ep[joints], et[joints] = 0.0, 0.0                           # no hypothesis spans the correction
             d[joints], c[joints] = 0.0, 0.0
             self.alarms += len(joints)
@@ -184,15 +188,15 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
         return self.tau, np.diag(self.c)
 
     def _apply_jump(self, jump: Jump) -> None:
-        """Correct the state for the onset detector's accepted jumps: x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ / C_θ."""
-        joints, e_p, e_t, c = jump.joints, jump.e_p, jump.e_t, jump.information
+        """Correct the state for the onset detector's accepted jumps: x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ Var Δ̂."""
+        joints, e_p, e_t, spread = jump.joints, jump.e_p, jump.e_t, jump.variance
         self.p_hat = self.p_hat.copy()
         self.tau = self.tau.copy()
         self.p_hat[joints] += e_p * jump.size
         self.tau[joints] += e_t * jump.size
-        self.a[joints] += e_p * e_p / c
-        self.b[joints] += e_p * e_t / c
-        self.c[joints] += e_t * e_t / c
+        self.a[joints] += e_p * e_p * spread
+        self.b[joints] += e_p * e_t * spread
+        self.c[joints] += e_t * e_t * spread
 
     def _update(self, p_pred, tau_pred, a, b, c, nu, R, sigma_d, h) -> np.ndarray:
         """Add the random walk's Q (K2) for per-step variance Σ_d and update (K3)-(K5); returns τ̂⁺."""

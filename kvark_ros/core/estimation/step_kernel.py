@@ -57,6 +57,11 @@ from kvark_ros.core.estimation.kernel_layouts import (CONST_ROWS, PARAMS, VEC_RO
 # so numba recompiles the kernels.
 LAYOUTS_DIGEST = "57ac96fd3c1e9e16ecf47fbc6bae108593eecff104a90660540992b28f7717cd"
 
+# Samples of evidence from which an accepted onset's jump counts as a step (docs/method.md §4.7): on fewer the GLR's
+# Δ̂ is one sample's innovation, which an impulse of the same area (an impact's transient, one outlying torque
+# reading) gives as well, so the jump's variance also spans the level an impulse leaves, zero.
+ONSET_EVIDENCE = 2
+
 
 def jit(function: Callable) -> Callable:
     """``numba.njit`` with numpy's IEEE semantics (inf/nan, no ZeroDivisionError) and numba's on-disk cache.
@@ -256,7 +261,7 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
     if window and closing:
         age[column] = 0.0
     if onset:
-        alarms += _accept_jumps(gate, threshold, p_hat, tau, a, b, c, ep, et, d, info)
+        alarms += _accept_jumps(gate, threshold, slot, p_hat, tau, a, b, c, ep, et, d, info)
         for j in range(n):
             for i in range(ep.shape[1]):
                 ep[j, i] = ep[j, i] + dt * et[j, i]                    # e⁻_k+1 = F e⁺_k
@@ -266,16 +271,19 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
 
 
 @jit
-def _accept_jumps(gate: bool, threshold: float, p_hat: np.ndarray, tau: np.ndarray, a: np.ndarray, b: np.ndarray,
-                  c: np.ndarray, ep: np.ndarray, et: np.ndarray, d: np.ndarray, info: np.ndarray) -> int:
+def _accept_jumps(gate: bool, threshold: float, slot: int, p_hat: np.ndarray, tau: np.ndarray, a: np.ndarray,
+                  b: np.ndarray, c: np.ndarray, ep: np.ndarray, et: np.ndarray, d: np.ndarray, info: np.ndarray) -> int:
     """Accept the jumps whose ℓ_θ = d²/C exceeds the threshold (once any d² > threshold C) and correct the
-    state, x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ / C_θ; that joint's hypotheses restart. Returns the number of joints."""
+    state, x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ Var Δ̂; that joint's hypotheses restart. Var Δ̂ = 1/C_θ, plus Δ̂² when the onset has
+    fewer than ``ONSET_EVIDENCE`` samples of evidence (the one at ring slot i has (slot − 1 − i) mod M): one sample
+    cannot tell a step from an impulse of the same area, after which the level is back at zero. Returns the number
+    of joints."""
     if not gate:
         return 0
-    accepted = 0
+    accepted, onsets = 0, ep.shape[1]
     for j in range(tau.shape[0]):
         best, theta = -np.inf, 0
-        for i in range(ep.shape[1]):
+        for i in range(onsets):
             ratio = d[j, i] * d[j, i] / (info[j, i] + 1e-300)          # ℓ_θ (0 where no data yet)
             if ratio > best:
                 best, theta = ratio, i
@@ -283,11 +291,14 @@ def _accept_jumps(gate: bool, threshold: float, p_hat: np.ndarray, tau: np.ndarr
             continue
         e_p, e_t, information = ep[j, theta], et[j, theta], info[j, theta]
         size = d[j, theta] / information                               # Δ̂_θ
+        spread = 1.0 / information                                     # Var Δ̂_θ
+        if (slot - 1 - theta) % onsets < ONSET_EVIDENCE:
+            spread += size * size                                      # a step or an impulse: level 0 to Δ̂
         p_hat[j] += e_p * size
         tau[j] += e_t * size
-        a[j] += e_p * e_p / information
-        b[j] += e_p * e_t / information
-        c[j] += e_t * e_t / information
+        a[j] += e_p * e_p * spread
+        b[j] += e_p * e_t * spread
+        c[j] += e_t * e_t * spread
         ep[j, :], et[j, :], d[j, :], info[j, :] = 0.0, 0.0, 0.0, 0.0  # no hypothesis spans the correction
         accepted += 1
     return accepted

@@ -348,6 +348,28 @@ def test_onset_detector_stays_quiet_without_a_jump(panda_config, rng, form):
     assert observer.onset.alarms == 0
 
 
+@pytest.mark.parametrize("form", MOMENTUM_FORMS)
+def test_a_jump_seen_on_one_sample_keeps_the_impulse_open(panda_config, rng, form):
+    """τ_ext = 10 N·m for one sample only (an impulse: an impact's transient, one outlying reading), momentum noise
+    σ = 1e-3 N·m·s. The GLR accepts it on that sample as a one-sample jump, whose variance holds Δ̂² (onset.py): its
+    interval reaches zero, and the next samples bring τ̂ back there: within 1 N·m from the fourth sample on. With Var Δ̂ = 1/C alone the
+    filter trusted the 10 N·m level, a second alarm overshot it back, and τ̂ undershot by 2.5 N·m (measured)."""
+    h, n = 0.002, 1
+    observer = _onset_filter(panda_config, n, 60.0, form)
+    p_true, p_prev, u = np.zeros(n), np.zeros(n), np.zeros(n)
+    taus, variances = [], []
+    for k in range(1100):
+        p_true = p_true + h * (10.0 if k == 1000 else 0.0)
+        p = p_true + 1e-3 * rng.normal(0.0, 1.0, n)
+        tau, cov = observer.step(h, np.zeros(n), p, p_prev, u)
+        p_prev = p
+        taus.append(tau[0])
+        variances.append(np.diag(cov)[0])
+    assert observer.onset.alarms >= 1 and taus[1000] > 9.0               # accepted on the impulse's sample
+    assert taus[1000] < 1.96 * np.sqrt(variances[1000])                  # its interval reaches the level 0
+    assert np.max(np.abs(taus[1003:])) < 1.0
+
+
 
 def test_every_observer_of_the_catalog_is_built_by_its_module(panda_config, panda_trained):
     """``observer_catalog`` is the one list of observers: each name's module builds an observer of that name, or

@@ -57,9 +57,7 @@ from kvark_ros.core.estimation.kernel_layouts import (CONST_ROWS, PARAMS, VEC_RO
 # so numba recompiles the kernels.
 LAYOUTS_DIGEST = "57ac96fd3c1e9e16ecf47fbc6bae108593eecff104a90660540992b28f7717cd"
 
-# Samples of evidence from which an accepted onset's jump counts as a step (docs/method.md §4.7): on fewer the GLR's
-# Δ̂ is one sample's innovation, which an impulse of the same area (an impact's transient, one outlying torque
-# reading) gives as well, so the jump's variance also spans the level an impulse leaves, zero.
+# Samples of evidence from which an accepted jump counts as a step; on fewer its Var Δ̂ also spans an impulse (§4.7).
 ONSET_EVIDENCE = 2
 
 
@@ -273,11 +271,8 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
 @jit
 def _accept_jumps(gate: bool, threshold: float, slot: int, p_hat: np.ndarray, tau: np.ndarray, a: np.ndarray,
                   b: np.ndarray, c: np.ndarray, ep: np.ndarray, et: np.ndarray, d: np.ndarray, info: np.ndarray) -> int:
-    """Accept the jumps whose ℓ_θ = d²/C exceeds the threshold (once any d² > threshold C) and correct the
-    state, x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ Var Δ̂; that joint's hypotheses restart. Var Δ̂ = 1/C_θ, plus Δ̂² when the onset has
-    fewer than ``ONSET_EVIDENCE`` samples of evidence (the one at ring slot i has (slot − 1 − i) mod M): one sample
-    cannot tell a step from an impulse of the same area, after which the level is back at zero. Returns the number
-    of joints."""
+    """Accept the jumps whose ℓ_θ = d²/C exceeds the threshold (once any d² > threshold C) and correct the state,
+    x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ Var Δ̂ (onset.py); that joint's hypotheses restart. Returns the number of joints."""
     if not gate:
         return 0
     accepted, onsets = 0, ep.shape[1]
@@ -291,9 +286,8 @@ def _accept_jumps(gate: bool, threshold: float, slot: int, p_hat: np.ndarray, ta
             continue
         e_p, e_t, information = ep[j, theta], et[j, theta], info[j, theta]
         size = d[j, theta] / information                               # Δ̂_θ
-        spread = 1.0 / information                                     # Var Δ̂_θ
-        if (slot - 1 - theta) % onsets < ONSET_EVIDENCE:
-            spread += size * size                                      # a step or an impulse: level 0 to Δ̂
+        one_sample = (slot - 1 - theta) % onsets < ONSET_EVIDENCE     # evidence at slot i: (slot − 1 − i) mod M
+        spread = 1.0 / information + (size * size if one_sample else 0.0)  # Var Δ̂_θ; one sample: step or impulse
         p_hat[j] += e_p * size
         tau[j] += e_t * size
         a[j] += e_p * e_p * spread

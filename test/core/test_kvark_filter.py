@@ -352,8 +352,10 @@ def test_onset_detector_stays_quiet_without_a_jump(panda_config, rng, form):
 def test_a_jump_seen_on_one_sample_keeps_the_impulse_open(panda_config, rng, form):
     """τ_ext = 10 N·m for one sample only (an impulse: an impact's transient, one outlying reading), momentum noise
     σ = 1e-3 N·m·s. The GLR accepts it on that sample as a one-sample jump, whose variance holds Δ̂² (onset.py): its
-    interval reaches zero, and the next samples bring τ̂ back there: within 1 N·m from the fourth sample on. With Var Δ̂ = 1/C alone the
-    filter trusted the 10 N·m level, a second alarm overshot it back, and τ̂ undershot by 2.5 N·m (measured)."""
+    interval reaches zero, and the next samples bring τ̂ back there. Measured on this seed, samples 3-50 after the
+    impulse: RMSE 0.196 N·m, lowest −0.98; with Var Δ̂ = 1/C alone (the filter trusting the 10 N·m level until a
+    second alarm overshot it back) 0.330 and −1.86, and the interval at the impulse ±1.04 N·m around 9.27. The
+    bound 0.25 lies between the two."""
     h, n = 0.002, 1
     observer = _onset_filter(panda_config, n, 60.0, form)
     p_true, p_prev, u = np.zeros(n), np.zeros(n), np.zeros(n)
@@ -367,7 +369,7 @@ def test_a_jump_seen_on_one_sample_keeps_the_impulse_open(panda_config, rng, for
         variances.append(np.diag(cov)[0])
     assert observer.onset.alarms >= 1 and taus[1000] > 9.0               # accepted on the impulse's sample
     assert taus[1000] < 1.96 * np.sqrt(variances[1000])                  # its interval reaches the level 0
-    assert np.max(np.abs(taus[1003:])) < 1.0
+    assert np.sqrt(np.mean(np.square(taus[1003:1051]))) < 0.25
 
 
 

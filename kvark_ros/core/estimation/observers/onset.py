@@ -25,9 +25,8 @@ Var Δ̂ = 1/C_θ + Δ̂²: its Δ̂ is that sample's innovation, which an impul
 transient, one outlying torque reading) gives as well as a step, and after an impulse the level is back at
 zero; the next samples, weighed by that P, settle which it was. The window VB then sees the jump in
 τ̂ − ẑ_j and raises Σ_d for the transient that follows the impact (eq. 38's statistic), and forgets it
-as before. Per joint,
-hypotheses live in a ring of M slots, one new onset per sample, arrays (n, M): a few vector
-operations per step.
+as before. Per joint, hypotheses live in a ring of M slots, one new onset per sample, arrays (n, M):
+a few vector operations per step.
 
 The detector belongs to the Σ_d adaptation (a jump is the limit of a large Σ_d for one sample),
 so only the variants with VB use it; the fixed-Q ablations (``kf``, ``kmp_kf*``) stay the paper's

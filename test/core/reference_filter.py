@@ -85,9 +85,10 @@ class ReferenceWindowVB(WindowVB):
 @dataclass(frozen=True)
 class Jump:
     """Jumps accepted at one step, on ``joints`` (J,): the filter adds ``e_p · size`` to p̂,
-    ``e_t · size`` to τ̂ and ``e eᵀ · variance`` to each joint's P (onset.py's docstring).
+    ``e_t · size`` to τ̂, ``e eᵀ · variance`` to each joint's P and ``e_t² · doubt`` to its P_ττ (onset.py's docstring).
 
-    e_p, e_t: e⁺_k of the accepted onset θ (J,); size: Δ̂_θ (J,) N·m; variance: Var Δ̂_θ (J,) N²·m².
+    e_p, e_t: e⁺_k of the accepted onset θ (J,); size: Δ̂_θ (J,) N·m; variance: Var Δ̂_θ = 1/C (J,) N²·m²;
+    doubt: Δ̂_θ² where the jump was seen on one sample (a step or an impulse, which differ in τ alone), else 0.
     """
 
     joints: np.ndarray
@@ -95,6 +96,7 @@ class Jump:
     e_t: np.ndarray
     size: np.ndarray
     variance: np.ndarray
+    doubt: np.ndarray
 
 
 class ReferenceOnsetDetector(OnsetDetector):
@@ -124,8 +126,8 @@ class ReferenceOnsetDetector(OnsetDetector):
             information = c[joints, theta]
             size = d[joints, theta] / information                       # Δ̂_θ
             one_sample = (self.slot - 1 - theta) % d.shape[1] < ONSET_EVIDENCE   # a step or an impulse
-            variance = 1.0 / information + np.where(one_sample, size * size, 0.0)
-            jump = Jump(joints, ep[joints, theta], et[joints, theta], size, variance)
+            doubt = np.where(one_sample, size * size, 0.0)
+            jump = Jump(joints, ep[joints, theta], et[joints, theta], size, 1.0 / information, doubt)
             ep[joints], et[joints] = 0.0, 0.0                           # no hypothesis spans the correction
             d[joints], c[joints] = 0.0, 0.0
             self.alarms += len(joints)
@@ -177,9 +179,13 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
             if jump is not None:
                 self._apply_jump(jump)
         if variant.ewma:
-            # eq. 31 with eq. 16's correction: E[ν²] = H P⁻ Hᵀ + R; bounded by the training R (Remark 2)
+            # eq. 31 with eq. 16's correction: E[ν²] = H P⁻ Hᵀ + R; bounded by the training R (Remark 2).
+            # Weighted by w = (R/S)², ν²'s information on R relative to P⁻ = 0 (Var ν² = 2 S²), over w̄_k, the
+            # weights' own EWMA: in steady state the rate stays ρ.
             a_pred = a_f + self._last_q[0]
-            updated = self.R_adaptive + self.ewma_rate * (nu * nu - a_pred - self.R_adaptive)
+            weight = (self.R_adaptive / self._last_s) ** 2
+            self.R_weight = self.R_weight + self.ewma_rate * (weight - self.R_weight)
+            updated = self.R_adaptive + self.ewma_rate * weight / self.R_weight * (nu * nu - a_pred - self.R_adaptive)
             self.R_adaptive = np.minimum(np.maximum(updated, self.R_min), self.R)   # np.clip costs 4× more
         if variant.nis:
             nis = nu * nu / self._last_s
@@ -188,7 +194,8 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
         return self.tau, np.diag(self.c)
 
     def _apply_jump(self, jump: Jump) -> None:
-        """Correct the state for the onset detector's accepted jumps: x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ Var Δ̂."""
+        """Correct the state for the onset detector's accepted jumps: x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ Var Δ̂, and
+        P_ττ += e⁺_τ² · doubt."""
         joints, e_p, e_t, spread = jump.joints, jump.e_p, jump.e_t, jump.variance
         self.p_hat = self.p_hat.copy()
         self.tau = self.tau.copy()
@@ -196,7 +203,7 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
         self.tau[joints] += e_t * jump.size
         self.a[joints] += e_p * e_p * spread
         self.b[joints] += e_p * e_t * spread
-        self.c[joints] += e_t * e_t * spread
+        self.c[joints] += e_t * e_t * (spread + jump.doubt)
 
     def _update(self, p_pred, tau_pred, a, b, c, nu, R, sigma_d, h) -> np.ndarray:
         """Add the random walk's Q (K2) for per-step variance Σ_d and update (K3)-(K5); returns τ̂⁺."""

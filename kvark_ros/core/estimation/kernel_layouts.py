@@ -109,6 +109,7 @@ class Vec(Layout):
     B = enum.auto()                     # b = Cov(p̂, τ̂), N²·m²·s
     C = enum.auto()                     # c = Var τ̂, N²·m²
     R = enum.auto()                     # the EWMA's R_k (eq. 31), (N·m·s)²
+    R_WEIGHT = enum.auto()              # the EWMA's mean weight w̄_k (eq. 31 weighted by (R/S)², §4.3)
     NIS = enum.auto()                   # the NIS mean, the A4 scale of Σ_d
     SIGMA_D = enum.auto()               # Σ_d of the last sample, N²·m²
     VB_DOF = enum.auto()                # the per-sample VB's IW dof λ (eq. 37)

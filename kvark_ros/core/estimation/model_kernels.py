@@ -17,7 +17,7 @@ from kvark_ros.core.estimation.step_kernel import jit
 
 # sha256 of core/estimation/kernel_layouts.py (its docstring): update it with the file,
 # so numba recompiles these kernels.
-LAYOUTS_DIGEST = "57ac96fd3c1e9e16ecf47fbc6bae108593eecff104a90660540992b28f7717cd"
+LAYOUTS_DIGEST = "e3f7b509cccb6ef74fe7b4fa8b3b9e55324e50cbb16e71381d652e7c183d1acf"
 
 
 @jit

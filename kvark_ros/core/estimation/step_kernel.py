@@ -5,9 +5,8 @@ on 6- and 7-element arrays. ``kvark_step`` runs the per-sample arithmetic of the
 (docs/method.md §4.2-4.7) and ``estimate_step`` everything else of a step but the pinocchio passes (which stay
 Python calls, ``RobotModel.compute_terms``), each as one ``numba.njit`` call on preallocated buffers. The numpy
 references (test/core/reference_filter.py, ``Estimator``) are readable: the same equations, and the tests pin
-the kernels to them on the committed bags (``test/core/test_compiled_step_matches_reference.py``).
-``observers.kvark_kernel`` (the filter) and ``core.estimation.compiled_step`` (the estimator) hold the buffers and make
-the calls.
+the kernels to them on the committed bags (``test/core/test_compiled_step_matches_reference.py``). The buffers and
+calls are in ``observers.kvark_kernel`` (the filter) and ``core.estimation.compiled_step`` (the estimator).
 
 ``estimate_step`` computes, in the reference's order:
 - p = rnea(q, 0, q̇) − g = M q̇ (eq. 5) and u = Cᵀ q̇ − g + τ_m (− τ_aug) (eq. 7) from pinocchio's outputs (§2.1);
@@ -22,10 +21,9 @@ the calls.
 The K-VARK momentum filter's P is diagonal (joints are independent 2-state filters, §4.2), so Cov τ̂, S and the
 collision's σ are diagonal: S's Cholesky factor is diag(√S_jj), and ``J⁺ P J⁺ᵀ = Σ_j P_jj J⁺_j J⁺_jᵀ``.
 
-Differences from the reference are rounding only: sums run in another order than BLAS's, ``exp`` is libm's rather
-than numpy's, the Cholesky factors are ours rather than LAPACK's (a pose whose smallest σ equals δ to ~1e-16 could
-be called regular by one and weak by the other). Measured on the committed bags: ≤ 1e-14 of each quantity's
-largest value.
+Differences from the reference are rounding only (≤ 1e-14 of each quantity's largest value on the committed bags):
+sums run in another order than BLAS's, ``exp`` is libm's, the Cholesky factors are ours rather than LAPACK's (a pose
+whose smallest σ equals δ to ~1e-16 could be called regular by one and weak by the other).
 
 Arguments, not globals. Every array numba receives from Python costs ~1 k instructions to unbox, so the state and
 the constants come packed (``split_state``, ``split_constants``). And numba's cache (``cache=True``: ``__pycache__``
@@ -36,11 +34,9 @@ file's own constants or from the layouts this file pins (below; ``test/core/test
 checks both). Arrays other than C-contiguous float64 ones (a strided view, float32) compile one more
 specialization, once.
 
-Layouts. The packed arrays' entries are declared once, in ``core.estimation.kernel_layouts`` (``Const``, ``Param``,
-``Option``, ``Vec``, ``Counter``, ``Row``, ``EstimatorParam``; bits ``Flag``, ``Outcome``); numba compiles a member as
-its integer constant, so ``vec[Vec.TAU]`` costs what ``vec[1]`` does. That file's content is pinned here by
-``LAYOUTS_DIGEST``: numba's cache sees only this file, so a change there must change the digest here (the tests
-check it), which recompiles the kernels.
+Layouts. The packed arrays' entries are declared once, in ``core.estimation.kernel_layouts``; numba compiles a member
+as its integer constant (``vec[Vec.TAU]`` costs what ``vec[1]`` does). ``LAYOUTS_DIGEST`` pins that file's content:
+numba's cache sees only this file, so a change there must change the digest here (the tests check it).
 """
 from __future__ import annotations
 
@@ -55,7 +51,7 @@ from kvark_ros.core.estimation.kernel_layouts import (CONST_ROWS, PARAMS, VEC_RO
 
 # sha256 of core/estimation/kernel_layouts.py (module docstring): update it with the file,
 # so numba recompiles the kernels.
-LAYOUTS_DIGEST = "57ac96fd3c1e9e16ecf47fbc6bae108593eecff104a90660540992b28f7717cd"
+LAYOUTS_DIGEST = "e3f7b509cccb6ef74fe7b4fa8b3b9e55324e50cbb16e71381d652e7c183d1acf"
 
 # Samples of evidence from which an accepted jump counts as a step; on fewer its Var Δ̂ also spans an impulse (§4.7).
 ONSET_EVIDENCE = 2
@@ -140,17 +136,16 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
     """One sample of the K-VARK momentum filter (``KVARKKernelFilter.step``); updates the packed state in place.
 
     Inputs: ``dt`` s; ``qd`` (n,) rad/s; ``p``, ``u_prev`` (n,) N·m·s, N·m. ``state``, ``ints``: the packed state
-    (``split_state``: p̂, τ̂, P = [[a, b], [b, c]], R_k, the NIS mean, Σ_d, the window's q̂, Υ and snapshots, the
-    residual model's μ_*, σ²_* (written here when ``options[Option.KMP]``, else read), the onset detector's sums, the
-    counters, ``Counter``); ``constants``, ``options``: ``split_constants`` (``Const``, ``Param``) and the ``Option``
-    entries.
+    (``split_state``: p̂, τ̂, P = [[a, b], [b, c]], R_k and w̄_k, the NIS mean, Σ_d, the window's q̂, Υ and snapshots,
+    the residual model's μ_*, σ²_* (written here when ``options[Option.KMP]``, else read), the onset detector's sums,
+    the counters, ``Counter``); ``constants``, ``options``: ``split_constants`` (``Const``, ``Param``) and ``Option``.
     """
     n = qd.shape[0]
     vec, snap, glr, scal = split_state(state, n, options[Option.SNAPSHOTS], options[Option.ONSETS])
     consts, params, support, weights_t = split_constants(constants, n, options[Option.SUPPORT])
     p_hat, tau, a, b, c = vec[Vec.P_HAT], vec[Vec.TAU], vec[Vec.A], vec[Vec.B], vec[Vec.C]
-    r_adaptive, nis_mean, sigma_d, q, scale = vec[Vec.R], vec[Vec.NIS], vec[Vec.SIGMA_D], vec[Vec.Q], vec[Vec.SCALE]
-    vb_dof, vb_scale = vec[Vec.VB_DOF], vec[Vec.VB_SCALE]
+    r_adaptive, r_weight, nis_mean, sigma_d = vec[Vec.R], vec[Vec.R_WEIGHT], vec[Vec.NIS], vec[Vec.SIGMA_D]
+    q, scale, vb_dof, vb_scale = vec[Vec.Q], vec[Vec.SCALE], vec[Vec.VB_DOF], vec[Vec.VB_SCALE]
     mean, var = vec[Vec.MEAN], vec[Vec.VAR]
     z, zz, pz, tz = snap[0], snap[1], snap[2], snap[3]
     ep, et, d, info = glr[0], glr[1], glr[2], glr[3]
@@ -250,8 +245,10 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
                 ep[j, i] = rho * r_s                                   # 1 − K_p = R / S
                 if d[j, i] * d[j, i] - threshold * info[j, i] > 0.0:
                     gate = True
-        if ewma:                                                       # eq. 31 with eq. 16's correction
-            updated = r_adaptive[j] + params[Param.EWMA_RATE] * (nu * nu - a_m - r_adaptive[j])
+        if ewma:                                       # eq. 31, eq. 16's correction, weighted by (R/S)² (§4.3)
+            rate = params[Param.EWMA_RATE]
+            r_weight[j] += rate * (g * g - r_weight[j])                # w̄_k, the weights' own EWMA, w = (R/S)²
+            updated = r_adaptive[j] + rate * g * g / r_weight[j] * (nu * nu - a_m - r_adaptive[j])
             r_adaptive[j] = min(max(updated, consts[Const.R_MIN, j]), consts[Const.R, j])
         if nis:                                                        # A4
             updated = nis_mean[j] + params[Param.NIS_RATE] * (nu * nu / s - nis_mean[j])
@@ -272,7 +269,8 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
 def _accept_jumps(gate: bool, threshold: float, slot: int, p_hat: np.ndarray, tau: np.ndarray, a: np.ndarray,
                   b: np.ndarray, c: np.ndarray, ep: np.ndarray, et: np.ndarray, d: np.ndarray, info: np.ndarray) -> int:
     """Accept the jumps whose ℓ_θ = d²/C exceeds the threshold (once any d² > threshold C) and correct the state,
-    x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ Var Δ̂ (onset.py); that joint's hypotheses restart. Returns the number of joints."""
+    x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ Var Δ̂, P_ττ += (e⁺_τ Δ̂)² on one sample (onset.py); that joint's hypotheses restart.
+    Returns the number of joints."""
     if not gate:
         return 0
     accepted, onsets = 0, ep.shape[1]
@@ -287,12 +285,13 @@ def _accept_jumps(gate: bool, threshold: float, slot: int, p_hat: np.ndarray, ta
         e_p, e_t, information = ep[j, theta], et[j, theta], info[j, theta]
         size = d[j, theta] / information                               # Δ̂_θ
         one_sample = (slot - 1 - theta) % onsets < ONSET_EVIDENCE     # evidence at slot i: (slot − 1 − i) mod M
-        spread = 1.0 / information + (size * size if one_sample else 0.0)  # Var Δ̂_θ; one sample: step or impulse
+        spread = 1.0 / information                                     # Var Δ̂_θ
+        doubt = size * size if one_sample else 0.0                     # a step or an impulse: same p, τ apart by Δ̂
         p_hat[j] += e_p * size
         tau[j] += e_t * size
         a[j] += e_p * e_p * spread
         b[j] += e_p * e_t * spread
-        c[j] += e_t * e_t * spread
+        c[j] += e_t * e_t * (spread + doubt)
         ep[j, :], et[j, :], d[j, :], info[j, :] = 0.0, 0.0, 0.0, 0.0  # no hypothesis spans the correction
         accepted += 1
     return accepted

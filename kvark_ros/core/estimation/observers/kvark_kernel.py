@@ -131,7 +131,8 @@ class KVARKKernelFilter(KVARKMomentumFilter):
 
     compiled = True     # the Estimator runs its whole step compiled around this filter (core.estimation.compiled_step)
     p_hat, tau, a, b, c = (_Packed("vec", row) for row in (Vec.P_HAT, Vec.TAU, Vec.A, Vec.B, Vec.C))
-    R_adaptive, nis_mean, Sigma_d = _Packed("vec", Vec.R), _Packed("vec", Vec.NIS), _Packed("vec", Vec.SIGMA_D)
+    R_adaptive, R_weight = _Packed("vec", Vec.R), _Packed("vec", Vec.R_WEIGHT)
+    nis_mean, Sigma_d = _Packed("vec", Vec.NIS), _Packed("vec", Vec.SIGMA_D)
     vb_dof, vb_scale = _Packed("vec", Vec.VB_DOF), _Packed("vec", Vec.VB_SCALE)
 
     def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning, noise: MomentumNoise,

@@ -15,11 +15,13 @@ Wahrburg et al. do, gives the same model with white measurement noise:
 The paper's pieces keep their roles: the KMP mean corrects the momentum prediction (eq. 22), the
 KMP variance is the heteroscedastic uncertainty of that prediction (eq. 30's t_s² Σ_*), the
 EWMA adapts the empirical noise from innovations (eq. 31 with eq. 16's ``− H P Hᵀ`` correction,
-capped at the training value as in v2 Remark 2), and Σ_d follows the VB inverse-Wishart
-recursion (eqs. 33-40, with forgetting), one joint at a time (a mean-field over joints, as the
-``vbkfmo_q`` baseline): as written, from a lag-one smoother, or over windows (``window_vb``, the
-default), helped at impacts by a contact-onset detector (``onset``). Per joint the filter is a
-2-state KF ((K1)-(K5) of ``momentum_observers``), run for all joints at once on arrays.
+each innovation weighted by (R/S)², its information on R, so that a sample after a jump, whose
+P⁻ dwarfs R, cannot pull R to its floor; capped at the training value as in v2 Remark 2), and
+Σ_d follows the VB inverse-Wishart recursion (eqs. 33-40, with forgetting), one joint at a time
+(a mean-field over joints, as the ``vbkfmo_q`` baseline): as written, from a lag-one smoother, or
+over windows (``window_vb``, the default), helped at impacts by a contact-onset detector
+(``onset``). Per joint the filter is a 2-state KF ((K1)-(K5) of ``momentum_observers``), run for
+all joints at once on arrays.
 
 The step runs compiled only (``kvark_kernel.KVARKKernelFilter``, ``step_kernel.kvark_step``); this module holds what
 the filter is built from: its settings, state, components, ``reset`` and ``configure``.
@@ -60,8 +62,8 @@ class KVARKMomentumFilter(KFMomentumObserver):
 
     uses_residual_model = True
     # R_min is reassigned by reset but derives from the model's R: a constant, not state.
-    STATE = KFMomentumObserver.STATE + ("prediction", "R_adaptive", "nis_mean", "Sigma_d", "vb_dof", "vb_scale",
-                                        "window", "onset")
+    STATE = KFMomentumObserver.STATE + ("prediction", "R_adaptive", "R_weight", "nis_mean", "Sigma_d", "vb_dof",
+                                        "vb_scale", "window", "onset")
 
     def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning, noise: MomentumNoise,
                  settings: FilterSettings, name: str | None = None,
@@ -108,6 +110,7 @@ class KVARKMomentumFilter(KFMomentumObserver):
     def reset(self) -> None:
         super().reset()
         self.R_adaptive = self.R.copy()                                 # R_k, (N·m·s)²
+        self.R_weight = np.ones(self.n)                                 # w̄_k, the EWMA's mean weight (§4.3)
         self.R_min = R_FLOOR * self.R
         self.nis_mean = np.ones(self.n)                                 # A4: running mean NIS per joint
         self.Sigma_d: np.ndarray | None = None                          # VB: Σ_d,k−1 per joint, N²·m²

@@ -20,10 +20,11 @@ with ν⁰ white, variance S_k (K3). The generalized likelihood ratio (Willsky &
 ℓ_θ = 2 ln Λ is χ²(1) under "no jump" for a fixed θ. When max_θ ℓ_θ exceeds
 ``filter.onset_threshold`` on a joint, the jump is accepted there and the filter is corrected as
 if it had been modelled from θ on: x̂ += e⁺_k Δ̂ and P += e⁺_k e⁺_kᵀ Var Δ̂, Var Δ̂ = 1/C_θ, then
-that joint's hypotheses restart. An onset seen on one sample only (``step_kernel.ONSET_EVIDENCE``) has
-Var Δ̂ = 1/C_θ + Δ̂²: its Δ̂ is that sample's innovation, which an impulse of the same area (an impact's
-transient, one outlying torque reading) gives as well as a step, and after an impulse the level is back at
-zero; the next samples, weighed by that P, settle which it was. The window VB then sees the jump in
+that joint's hypotheses restart. An onset seen on one sample only (``step_kernel.ONSET_EVIDENCE``) also
+adds (e⁺_τ Δ̂)² to Var τ̂ alone: its Δ̂ is that sample's innovation, which an impulse of the same area (an
+impact's transient, one outlying torque reading) gives as well as a step. Both explain that sample's
+momentum, so p̂'s correction stands; they differ in τ alone (after an impulse the level is back at zero),
+and the next samples, weighed by that P, settle which it was. The window VB then sees the jump in
 τ̂ − ẑ_j and raises Σ_d for the transient that follows the impact (eq. 38's statistic), and forgets it
 as before. Per joint, hypotheses live in a ring of M slots, one new onset per sample, arrays (n, M):
 a few vector operations per step.

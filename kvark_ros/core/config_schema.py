@@ -160,7 +160,7 @@ KEYS: tuple[Key, ...] = (
          **_unit(0.001, 60.0)),
     _key("filter.vb_prior_dof", "number", 1.0, "window variant: prior strength ν₀ (in windows) of the IW prior around the trained Σ_d",
          **_unit(0.0, 1e6, low_open=True)),
-    _key("filter.prior_bandwidth", "number", 30.0,
+    _key("filter.prior_bandwidth", "number", 20.0,
          "rad/s; momentum form, VB variants (kvark, gmr_gp, oracle): natural frequency of the τ_ext random walk "
          "prior in free motion; the VB and the onset detector raise it at contact (docs/method.md §4.12)",
          **_unit(0.0, 1e4, low_open=True)),

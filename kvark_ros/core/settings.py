@@ -50,7 +50,7 @@ class FilterSettings:
     vb_prior_dof: float = 1.0
     """window variant: prior strength ν₀ (in windows) of the IW prior around the trained Σ_d. Allowed: a number in (0.0,
     1000000.0]."""
-    prior_bandwidth: float = 30.0
+    prior_bandwidth: float = 20.0
     """rad/s; momentum form, VB variants (kvark, gmr_gp, oracle): natural frequency of the τ_ext random walk prior in
     free motion; the VB and the onset detector raise it at contact (docs/method.md §4.12). Allowed: a number in (0.0,
     10000.0]."""

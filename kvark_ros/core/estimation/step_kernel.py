@@ -53,7 +53,7 @@ from kvark_ros.core.estimation.kernel_layouts import (CONST_ROWS, PARAMS, VEC_RO
 # so numba recompiles the kernels.
 LAYOUTS_DIGEST = "e3f7b509cccb6ef74fe7b4fa8b3b9e55324e50cbb16e71381d652e7c183d1acf"
 
-# Samples of evidence from which an accepted jump counts as a step; on fewer its Var Δ̂ also spans an impulse (§4.7).
+# Samples of evidence from which an accepted jump counts as a step; on fewer its Var τ̂ also spans an impulse (§4.7).
 ONSET_EVIDENCE = 2
 
 

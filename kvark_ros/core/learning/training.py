@@ -181,8 +181,7 @@ def choose_inputs(data: TrainingData, mode: str, seed: int, log: Callable[[str],
         return (mode,) * n, {}
     if mode != "auto":
         raise ValueError(f"residual inputs must be one of {list(INPUT_MODES)}, got {mode!r}")
-    tail = np.concatenate([np.arange(len(seg.stamp)) >= (1.0 - holdout) * len(seg.stamp)
-                           for seg in data.segments])
+    tail = recording_ends(data, holdout)
     log(f"[train] residual inputs: fitting {', '.join(INPUT_KINDS)} on every joint ...")
     fits = {}
     for kind in sorted(INPUT_KINDS, key=lambda kind: kind == "qd"):     # the two-input fits, the longest, first

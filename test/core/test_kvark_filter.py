@@ -294,6 +294,17 @@ def _onset_filter(panda_config, n: int, threshold: float, form: str):
     return _window_filter(panda_config, n, 0.05, 1e-6, form=form, onset_threshold=threshold, onset_window_time=0.02)
 
 
+def _one_joint_samples(observer, rng, torque, steps: int = 1100, h: float = 0.002, noise: float = 1e-3):
+    """Step a one-joint filter on p_k = p_k−1 + h τ(k), measured with white noise σ = ``noise`` N·m·s (u = 0, q̇ = 0);
+    yields its (τ̂, Cov τ̂) after each sample."""
+    p_true, p_prev, zero = np.zeros(1), np.zeros(1), np.zeros(1)
+    for k in range(steps):
+        p_true = p_true + h * torque(k)
+        p = p_true + noise * rng.normal(0.0, 1.0, 1)
+        yield observer.step(h, zero, p, p_prev, zero)
+        p_prev = p
+
+
 def _step_response(observer, rng, step: np.ndarray, noise: float, steps: int = 1500, h: float = 0.002,
                    onset: int = 1000) -> np.ndarray:
     n = len(step)
@@ -357,15 +368,9 @@ def test_a_jump_seen_on_one_sample_keeps_the_impulse_open(panda_config, rng, for
     With the doubt along e⁺, as p̂'s too (p̂ then drifts back with τ̂, though the impulse's momentum is real): 0.179;
     with Var Δ̂ = 1/C alone (the 10 N·m level trusted, ±1.04 N·m around 9.27, until a second alarm overshoots it
     back): 0.331, lowest −1.86, two alarms. The bound 0.12 lies between 0.072 and 0.179."""
-    h, n = 0.002, 1
-    observer = _onset_filter(panda_config, n, 60.0, form)
-    p_true, p_prev, u = np.zeros(n), np.zeros(n), np.zeros(n)
+    observer = _onset_filter(panda_config, 1, 60.0, form)
     taus, variances = [], []
-    for k in range(1100):
-        p_true = p_true + h * (10.0 if k == 1000 else 0.0)
-        p = p_true + 1e-3 * rng.normal(0.0, 1.0, n)
-        tau, cov = observer.step(h, np.zeros(n), p, p_prev, u)
-        p_prev = p
+    for tau, cov in _one_joint_samples(observer, rng, lambda k: 10.0 if k == 1000 else 0.0):
         taus.append(tau[0])
         variances.append(np.diag(cov)[0])
     assert observer.onset.alarms == 1 and taus[1000] > 9.0               # accepted on the impulse's sample only
@@ -400,14 +405,7 @@ def test_the_noise_estimate_keeps_its_level_through_a_jump(panda_config, rng, fo
     barely move it. Measured on seeds 12345, 1, 2: R_k/R₀ 0.93-0.98 before the step, at least 0.81 over the 100
     samples after it. Unweighted, ν² − a⁻ − R is hugely negative there and R_k fell to its floor 0.01 R₀ (the filter
     then trusted p 100× too much, and its P collapsed: a table contact flagged as a collision). Bound 0.5."""
-    h, n = 0.002, 1
-    observer = _onset_filter(panda_config, n, 60.0, form)
-    p_true, p_prev, u = np.zeros(n), np.zeros(n), np.zeros(n)
-    ratios = []
-    for k in range(1100):
-        p_true = p_true + h * (10.0 if k >= 1000 else 0.0)
-        p = p_true + 1e-3 * rng.normal(0.0, 1.0, n)
-        observer.step(h, np.zeros(n), p, p_prev, u)
-        p_prev = p
-        ratios.append(observer.R_adaptive[0] / observer.R[0])
+    observer = _onset_filter(panda_config, 1, 60.0, form)
+    ratios = [observer.R_adaptive[0] / observer.R[0]
+              for _ in _one_joint_samples(observer, rng, lambda k: 10.0 if k >= 1000 else 0.0)]
     assert observer.onset.alarms >= 1 and min(ratios[1000:]) > 0.5

@@ -177,9 +177,11 @@ KEYS: tuple[Key, ...] = (
          "filter.interval_floor applied, docs/method.md §4.13) or off (the filter's own P)",
          runtime=True, choices=("trained", "off")),
     _key("filter.interval_floor", "choice", "kf",
-         "with interval_calibration trained: kf (each reported variance at least the steady state of the "
-         "fixed-Σ_d kf, so kvark's interval is never narrower than kf's; docs/method.md §4.13) or off (the "
-         "calibrated c² P alone, sharper where free-motion training data tell the whole story)", runtime=True,
+         "with interval_calibration trained: kf (each reported variance at least the steady state P_b of the "
+         "fixed-Σ_d kf while the contact test holds a load, so under a load kvark's interval is never narrower "
+         "than kf's; in free motion at least c_b² P_b, kf's interval as the contact-free training data show it; "
+         "docs/method.md §4.13) or off (the calibrated c² P alone, sharper where free-motion training data tell "
+         "the whole story)", runtime=True,
          choices=("kf", "off")),
     _key("filter.huang_tau", "number", 300.0, "prior strength τ of the huang variant",
          **_unit(0.0, 1e6, low_open=True)),

@@ -69,9 +69,11 @@ class FilterSettings:
     filter.interval_floor applied, docs/method.md §4.13) or off (the filter's own P). Allowed: one of trained, off. Can
     be changed while the node runs."""
     interval_floor: Literal["kf", "off"] = "kf"
-    """with interval_calibration trained: kf (each reported variance at least the steady state of the fixed-Σ_d kf, so
-    kvark's interval is never narrower than kf's; docs/method.md §4.13) or off (the calibrated c² P alone, sharper where
-    free-motion training data tell the whole story). Allowed: one of kf, off. Can be changed while the node runs."""
+    """with interval_calibration trained: kf (each reported variance at least the steady state P_b of the fixed-Σ_d kf
+    while the contact test holds a load, so under a load kvark's interval is never narrower than kf's; in free motion at
+    least c_b² P_b, kf's interval as the contact-free training data show it; docs/method.md §4.13) or off (the
+    calibrated c² P alone, sharper where free-motion training data tell the whole story). Allowed: one of kf, off. Can
+    be changed while the node runs."""
     huang_tau: float = 300.0
     """prior strength τ of the huang variant. Allowed: a number in (0.0, 1000000.0]."""
     ewma_time: float = 0.2

@@ -46,6 +46,25 @@ def test_the_floor_raises_only_the_variances_below_it_and_keeps_the_covariance_p
     np.testing.assert_array_equal(IntervalScale(np.array([2.0, 0.5])).floor, [0.0, 0.0])     # models without one
 
 
+def test_in_free_motion_the_floor_is_narrowed_by_its_factor_and_under_a_load_it_is_whole():
+    """Floors [9, 4] with factors [0.5, 1]: free motion [0.25·9, 4] = [2.25, 4], so the first variance (16) stays and
+    the second (2.25) is raised to 4; under a load the first floor is 9, still below 16. Models without factors keep
+    the whole floor everywhere."""
+    scale = IntervalScale(np.array([2.0, 0.5]), np.array([9.0, 4.0]), np.array([0.5, 1.0]))
+    np.testing.assert_allclose(scale.floor_for(False), [2.25, 4.0])
+    np.testing.assert_allclose(scale.floor_for(True), [9.0, 4.0])
+    P = np.array([[1.0, 0.0], [0.0, 4.0]])           # c² P = diag(4, 1)
+    np.testing.assert_allclose(np.diag(scale.apply(P, loaded=False)), [4.0, 4.0])
+    np.testing.assert_allclose(np.diag(scale.apply(P, loaded=True)), [9.0, 4.0])
+    np.testing.assert_array_equal(IntervalScale(np.ones(2), np.array([9.0, 4.0])).floor_for(False), [9.0, 4.0])
+
+
+@pytest.mark.parametrize("bad", [[1.0, 0.0], [1.0, 1.5], [1.0, np.nan], [1.0]])
+def test_a_floor_factor_outside_0_1_is_refused(bad):
+    with pytest.raises(ValueError, match="floor factor"):
+        IntervalScale(np.ones(2), np.ones(2), np.array(bad))
+
+
 @pytest.mark.parametrize("bad", [[1.0, -1.0], [1.0, np.inf], [1.0]])
 def test_a_negative_non_finite_or_misshaped_floor_is_refused(bad):
     with pytest.raises(ValueError, match="floor"):
@@ -67,10 +86,14 @@ def test_the_floor_is_the_steady_state_variance_the_kf_reports(panda_config, pan
 
 
 def test_training_stores_the_kf_floor_with_the_factors(panda_config, panda_trained):
-    """The model's floor is the ``kf``'s steady state (docs/method.md §4.13), so kvark never reports τ_ext known
-    better than the fixed-Σ_d filter at the contact bandwidth would."""
+    """The model's floor is the ``kf``'s steady state (docs/method.md §4.13), so under a load kvark never reports
+    τ_ext known better than the fixed-Σ_d filter at the contact bandwidth would; in free motion it is narrowed by
+    ``kf``'s own factor, read on the same recordings as kvark's, where that is below 1."""
     expected = variance_floor(make_observer("kf", panda_trained, panda_config.filter), panda_trained.sample_period)
-    np.testing.assert_allclose(panda_trained.interval_scale.floor, expected, rtol=1e-9)
+    scale = panda_trained.interval_scale
+    np.testing.assert_allclose(scale.floor, expected, rtol=1e-9)
+    np.testing.assert_array_equal(scale.floor_factor, np.minimum(panda_trained.info["interval_factors"]["kf"], 1.0))
+    assert np.all(scale.free_floor <= scale.floor)
 
 
 @pytest.mark.parametrize("bad", [[1.0, 0.0], [1.0, np.nan], [[1.0]]])
@@ -156,7 +179,9 @@ def _reported(config, panda, trained, stream):
 def test_the_estimator_reports_the_scaled_covariance_and_its_flags_do_not_move(panda, panda_config, panda_trained):
     c = np.linspace(0.5, 3.0, 7)
     trained = replace(panda_trained, interval_scale=IntervalScale(c))
-    stream = synthetic_stream(panda, 1.0, seed=5)
+    push = np.zeros(7)
+    push[1] = 15.0                                   # N·m on joint 2 from 0.5 s: the contact test flags it
+    stream = synthetic_stream(panda, 1.0, seed=5, external=lambda t: push if t >= 0.5 else 0.0 * push)
     config = replace(panda_config, filter=replace(panda_config.filter, stiction_velocity=0.0))
     scaled, flags = _reported(config, panda, trained, stream)
     off = replace(config, filter=replace(config.filter, interval_calibration="off"))
@@ -171,6 +196,15 @@ def test_the_estimator_reports_the_scaled_covariance_and_its_flags_do_not_move(p
                                        stream)
     np.testing.assert_allclose(np.diagonal(floored, axis1=1, axis2=2), np.maximum(variances, floor), rtol=1e-12)
     assert floored_flags == raw_flags
+    # Narrowed to a quarter in free motion: where the last sample's contact test held a load, the floor is whole.
+    variances_floored = np.diagonal(floored, axis1=1, axis2=2)
+    narrowed, narrowed_flags = _reported(config, panda, replace(
+        trained, interval_scale=IntervalScale(c, floor, np.full(7, 0.5))), stream)
+    loaded = np.array([False] + [contact for contact, _ in narrowed_flags[:-1]])
+    assert loaded.any() and not loaded.all()
+    expected = np.where(loaded[:, None], variances_floored, np.maximum(variances, 0.25 * floor))
+    np.testing.assert_allclose(np.diagonal(narrowed, axis1=1, axis2=2), expected, rtol=1e-12)
+    assert narrowed_flags == raw_flags
     unfloored = replace(config, filter=replace(config.filter, interval_floor="off"))      # the key switches it off
     np.testing.assert_allclose(_reported(unfloored, panda, replace(trained, interval_scale=IntervalScale(c, floor)),
                                          stream)[0], scaled, rtol=1e-12)

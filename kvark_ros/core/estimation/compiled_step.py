@@ -60,6 +60,7 @@ class CompiledStep:
         self._aug_arguments = (None if self._augmentation is None
                                else (*augmentation_entries(self._augmentation), self.rows[Row.AUG]))
         self._band, self._scale = band, scale
+        self._floored, self._loaded = False, False
         if band is not None:
             self.rows[Row.BAND] = band
         if scale is not None:
@@ -80,13 +81,25 @@ class CompiledStep:
             EstimatorParam.DAMPING: wrench.damping, EstimatorParam.PRIOR_FORCE: wrench.prior_force,
             EstimatorParam.PRIOR_MOMENT: wrench.prior_moment, EstimatorParam.STICTION_VELOCITY: velocity,
             EstimatorParam.Z: z})
-        if self._scale is not None:      # the floor P_b, or none (zeros) with filter.interval_floor off
-            self.rows[Row.FLOOR] = self._scale.floor if config.filter.interval_floor == "kf" else 0.0
+        self._floored = config.filter.interval_floor == "kf"
+        self._set_floor()
         self._flags = ((Flag.STICTION if self._band is not None and velocity != 0.0 else 0)
                        | (Flag.SCALED if self._scale is not None and config.filter.interval_calibration == "trained"
                           else 0)
                        | (Flag.END_EFFECTOR if config.wrench.frame != "base" else 0)
                        | (Flag.AUGMENTED if self._augmentation is not None else 0))
+
+    def load(self, loaded: bool) -> None:
+        """The floor of the samples to come: P_b while the contact test holds a load, c_b² P_b in free motion
+        (docs/method.md §4.13); the row is written only when that changes."""
+        if loaded != self._loaded:
+            self._loaded = loaded
+            self._set_floor()
+
+    def _set_floor(self) -> None:
+        """Row.FLOOR: the floor in force, or none (zeros) with filter.interval_floor off."""
+        if self._scale is not None:
+            self.rows[Row.FLOOR] = self._scale.floor_for(self._loaded) if self._floored else 0.0
 
     def _compile(self) -> None:
         """One call of each kernel on dummy data (its machine code from numba's cache, or compiled)."""

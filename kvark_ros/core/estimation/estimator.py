@@ -356,8 +356,10 @@ class Estimator:
                 widened.flat[:: n + 1] += sticking             # Cov τ̂ + diag σ²_s(q̇) (docs/method.md §4.11)
             reported = widened
             if self._interval_scale is not None and self.config.filter.interval_calibration == "trained":
-                # diag(c) P diag(c), at least P_b with filter.interval_floor kf, new (docs/method.md §4.13)
-                reported = self._interval_scale.apply(tau_cov, self.config.filter.interval_floor == "kf")
+                # diag(c) P diag(c), with filter.interval_floor kf at least P_b under a load flagged by the last
+                # sample's contact test, c_b² P_b in free motion, new (docs/method.md §4.13)
+                reported = self._interval_scale.apply(tau_cov, self.config.filter.interval_floor == "kf",
+                                                      self.contact.flag)
                 if sticking is not None:
                     reported.flat[:: n + 1] += sticking
         wrench, wrench_cov, weak, rotation, jacobian = self._solve_wrench(q, tau_ext, reported)
@@ -382,6 +384,7 @@ class Estimator:
     def _step_compiled(self, stamp: float, dt: float, q: np.ndarray, qd: np.ndarray,
                        tau_m: np.ndarray) -> Estimate | None:
         """The rest of ``step`` as one compiled kernel (core.estimation.step_kernel), with the reference's outcomes."""
+        self._compiled.load(self.contact.flag)      # the floor under a load flagged by the last sample (§4.13)
         singular, diverged, statistic, excess, tau_ext, tau_cov, wrench, wrench_cov, rotation, jacobian, weak = (
             self._compiled.step(stamp, dt, q, qd, tau_m, self.tare))
         if singular:              # wrench.damping 0 at a singular pose: the reference's answer (it refuses it)

@@ -2,8 +2,9 @@
 
 On contact-free data the true τ_ext is zero, so τ̂ itself is the error: c_j is the factor that puts ``COVERAGE`` of
 the training τ̂_j inside ±1.96 √(c_j² σ_j² + σ²_s,j) (``core.estimation.calibration``, which holds and applies the
-factors). The estimator reports at least the floor P_b, the fixed-Σ_d ``kf``'s steady-state variance
-(``variance_floor``), which can only widen that interval.
+factors). The estimator reports at least the floor: P_b, the fixed-Σ_d ``kf``'s steady-state variance
+(``variance_floor``), while the contact test holds a load, and c_b² P_b in free motion (``floor_factor``); it can
+only widen that interval.
 """
 from __future__ import annotations
 
@@ -45,6 +46,16 @@ def variance_floor(kf: Any, sample_period: float) -> np.ndarray:
     if not np.all(np.isfinite(floor)) or np.any(floor < 0.0):
         raise ValueError(f"the kf's steady-state variance is not a finite non-negative number: {floor}")
     return floor
+
+
+def floor_factor(kf_scale: np.ndarray) -> np.ndarray:
+    """c_b = min(c_kf, 1) (n,): the factor of the floor in free motion, from ``kf``'s own factor c_kf
+    (``interval_scale`` of a ``kf`` stepped over the same contact-free recordings as kvark's). In free motion the
+    floor is ``kf``'s interval as those recordings show it: where 95 % of ``kf``'s contact-free τ̂ falls inside a
+    narrower interval than its P says (c_kf < 1: its white-noise R overstates a noise that is weak within the
+    filter's band, as on the real Panda's link-side sensors), it narrows to that. It never widens beyond P_b (c_kf > 1
+    is ``kf``'s own misfit, which kvark's c already reads), and under a load it is P_b whole (docs/method.md §4.13)."""
+    return np.minimum(np.asarray(kf_scale, dtype=float), 1.0)
 
 
 def interval_scale(observer: Any, stamps: Sequence[np.ndarray], qd: Sequence[np.ndarray], q: Sequence[np.ndarray],

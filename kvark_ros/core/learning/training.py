@@ -35,7 +35,7 @@ from kvark_ros.core.estimation.residual.common import joint_workers, single_thre
 from kvark_ros.core.learning.kmp_inputs import fit_kmp, second_inputs, start_kmp_fit
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.estimation.stiction import StictionBand
-from kvark_ros.core.learning.interval_factors import interval_scale, variance_floor
+from kvark_ros.core.learning.interval_factors import floor_factor, interval_scale, variance_floor
 from kvark_ros.core.learning.static_band import friction_torque, identify_band
 from kvark_ros.core.learning.tuning import match_covariances, virtual_measurements
 
@@ -341,35 +341,41 @@ def calibrate_intervals(trained: TrainedModel, data: TrainingData, settings: Fil
     c is read in-sample (``trained`` on every sample) and, with ``unseen`` (a model fitted without some samples,
     those samples (T,) bool: the ends of the recordings) of at least ``MIN_UNSEEN`` s, also where that model has
     not seen the motion: the model error a new recording meets. Each joint keeps the larger factor. The result also
-    holds the reported variance's floor P_b (``variance_floor``: the ``kf``'s steady state)."""
+    holds the reported variance's floor: the ``kf``'s steady state P_b (``variance_floor``), narrowed by ``kf``'s own
+    factor c_b where the same recordings show its interval too wide (``floor_factor``)."""
     started = time.perf_counter()
     velocity = settings.stiction_velocity
     band = (None if trained.stiction is None or velocity == 0.0
             else lambda qd: trained.stiction.variance(qd, velocity))
     floor = variance_floor(make_observer("kf", trained, settings), trained.sample_period)
 
-    def factors(model: TrainedModel, rows: Sequence[np.ndarray]) -> np.ndarray:
+    def factors(observer: str, model: TrainedModel, rows: Sequence[np.ndarray]) -> np.ndarray:
         kept = [(seg, dyn, row) for seg, dyn, row in zip(data.segments, data.dynamics, rows) if row.sum() > 1]
-        return interval_scale(make_observer(CALIBRATED_OBSERVER, model, settings),
+        return interval_scale(make_observer(observer, model, settings),
                               [seg.stamp[row] for seg, _, row in kept], [seg.qd[row] for seg, _, row in kept],
                               [seg.q[row] for seg, _, row in kept], [dyn.p[row] for _, dyn, row in kept],
                               [dyn.u[row] for _, dyn, row in kept], [dyn.g[row] for _, dyn, row in kept],
                               band).scale
 
-    in_sample = factors(trained, [np.ones(len(seg.stamp), bool) for seg in data.segments])
-    scale, out, seconds = in_sample, None, 0.0
+    everything = [np.ones(len(seg.stamp), bool) for seg in data.segments]
+    in_sample, kf_in_sample = factors(CALIBRATED_OBSERVER, trained, everything), factors("kf", trained, everything)
+    scale, kf_scale, out, seconds = in_sample, kf_in_sample, None, 0.0
     text = "in-sample " + ", ".join(f"{name} {value:.2f}" for name, value in zip(trained.joint_names, in_sample))
     if unseen is not None:
         cuts = np.cumsum([0] + [len(seg.stamp) for seg in data.segments])
         parts = [unseen[1][a:b] for a, b in zip(cuts[:-1], cuts[1:])]
         seconds = sum(float(np.ptp(seg.stamp[part])) for seg, part in zip(data.segments, parts) if part.sum() > 1)
         if seconds >= MIN_UNSEEN:
-            out = factors(unseen[0], parts)
+            out = factors(CALIBRATED_OBSERVER, unseen[0], parts)
             text += "; on unseen ends " + ", ".join(f"{value:.2f}" for value in out)
             scale = np.maximum(in_sample, out)
-    text += "; floor σ_b (kf's steady state, N·m) " + ", ".join(f"{value:.3g}" for value in np.sqrt(floor))
+            kf_scale = np.maximum(kf_in_sample, factors("kf", unseen[0], parts))
+    narrowing = floor_factor(kf_scale)
+    text += ("; floor σ_b (kf's steady state, N·m) " + ", ".join(f"{value:.3g}" for value in np.sqrt(floor))
+             + ", in free motion × c_b " + ", ".join(f"{value:.2f}" for value in narrowing))
     log(f"[train] kvark interval factors c (95 % of the contact-free τ̂ within ±1.96 √(c²σ² + σ²_s); reported: "
         f"±1.96 √(max(c²σ², σ_b²) + σ²_s)): {text} ({time.perf_counter() - started:.1f} s)")
     info = {**trained.info, "interval_factors": {"in_sample": in_sample.tolist(), "unseen_seconds": round(seconds, 2),
-                                                 "unseen": None if out is None else out.tolist()}}
-    return replace(trained, interval_scale=IntervalScale(scale, floor), info=info)
+                                                 "unseen": None if out is None else out.tolist(),
+                                                 "kf": kf_scale.tolist()}}
+    return replace(trained, interval_scale=IntervalScale(scale, floor, narrowing), info=info)

@@ -10,9 +10,10 @@ by c), each variance raised to at least the floor: under a load the contact test
 variance of the fixed-Σ_d ``kf`` at the contact bandwidth ω_b: the adaptive filter never claims to know τ_ext better
 than that filter would), in free motion c_b² P_b (``kf``'s interval as the same training data show it,
 docs/method.md §4.13), plus the static friction band's σ²_s (core.estimation.stiction), and so the wrench
-covariance; the filter, its gain and the contact and collision tests keep P. c is read for the interval without the floor (which only widens
-it): near rest the band already covers part of the misfit, so the factor needed there is smaller. The factors and
-the floor are read at training (``core.learning.interval_factors``); this module holds them and applies them.
+covariance; the filter, its gain and the contact and collision tests keep P. c is read for the interval without the
+floor (which only widens it): near rest the band already covers part of the misfit, so the factor needed there is
+smaller. The factors and the floor are read at training (``core.learning.interval_factors``); this module holds them
+and applies them.
 """
 from __future__ import annotations
 

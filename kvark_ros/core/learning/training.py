@@ -341,8 +341,8 @@ def calibrate_intervals(trained: TrainedModel, data: TrainingData, settings: Fil
     c is read in-sample (``trained`` on every sample) and, with ``unseen`` (a model fitted without some samples,
     those samples (T,) bool: the ends of the recordings) of at least ``MIN_UNSEEN`` s, also where that model has
     not seen the motion: the model error a new recording meets. Each joint keeps the larger factor. The result also
-    holds the reported variance's floor: the ``kf``'s steady state P_b (``variance_floor``), narrowed by ``kf``'s own
-    factor c_b where the same recordings show its interval too wide (``floor_factor``)."""
+    holds the reported variance's floor: the ``kf``'s steady state P_b (``variance_floor``) and its factor in free
+    motion c_b, ``kf``'s own factor read the same way where below 1 (``floor_factor``)."""
     started = time.perf_counter()
     velocity = settings.stiction_velocity
     band = (None if trained.stiction is None or velocity == 0.0

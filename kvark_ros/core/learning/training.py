@@ -374,7 +374,8 @@ def calibrate_intervals(trained: TrainedModel, data: TrainingData, settings: Fil
     text += ("; floor σ_b (kf's steady state, N·m) " + ", ".join(f"{value:.3g}" for value in np.sqrt(floor))
              + ", in free motion × c_b " + ", ".join(f"{value:.2f}" for value in narrowing))
     log(f"[train] kvark interval factors c (95 % of the contact-free τ̂ within ±1.96 √(c²σ² + σ²_s); reported: "
-        f"±1.96 √(max(c²σ², σ_b²) + σ²_s)): {text} ({time.perf_counter() - started:.1f} s)")
+        f"±1.96 √(max(c²σ², σ_b²) + σ²_s) under a load, σ_b × c_b in free motion): {text} "
+        f"({time.perf_counter() - started:.1f} s)")
     info = {**trained.info, "interval_factors": {"in_sample": in_sample.tolist(), "unseen_seconds": round(seconds, 2),
                                                  "unseen": None if out is None else out.tolist(),
                                                  "kf": kf_scale.tolist()}}

@@ -45,6 +45,8 @@ class EffectEntry(NamedTuple):
     prior: what bounds |θ| ('' for none), derived per robot by ``gap.priors`` and scaled by how τ_m is measured:
         at that bound the effect stands for another one and the diagnosis drops it (and warns when the data want it
         beyond);
+    between_runs: why it changes between runs of one calibrated robot ('' for none: the robot's construction,
+        calibrated once); ``kvark diagnose --against`` names only these unless told otherwise;
     help: what it is (θ's sign and units).
     """
 
@@ -57,31 +59,34 @@ class EffectEntry(NamedTuple):
     grid: Mapping[str, tuple[float, ...]] = MappingProxyType({})
     required: tuple[str, ...] = ()
     prior: str = ""
+    between_runs: str = ""
     help: str = ""
 
 
 EFFECTS = (
     EffectEntry("coulomb_friction", TORQUE, ("coulomb",), nonnegative=True, friction=True,
                 grid={"epsilon": (0.02, 0.05, 0.1, 0.2)}, prior="share of the effort limit",
-                help="F_c tanh(q̇/ε), F_c ≥ 0 N·m; ε rad/s"),
+                between_runs="gear temperature and wear", help="F_c tanh(q̇/ε), F_c ≥ 0 N·m; ε rad/s"),
     EffectEntry("viscous_friction", TORQUE, ("viscous",), nonnegative=True, friction=True,
                 prior="share of the effort limit at the velocity limit",
-                help="F_v q̇, F_v ≥ 0 N·m·s/rad"),
+                between_runs="lubricant temperature", help="F_v q̇, F_v ≥ 0 N·m·s/rad"),
     EffectEntry("stribeck_friction", TORQUE, ("static_minus_coulomb",), nonnegative=True, friction=True,
                 grid={"stribeck_velocity": (0.03, 0.1, 0.3), "epsilon": (TANH_EPSILON,)},
                 required=("stribeck_velocity",), prior="share of the effort limit",
+                between_runs="gear temperature and wear",
                 help="(F_s − F_c) exp(−(q̇/v_s)²) tanh(q̇/ε) ≥ 0 N·m; v_s rad/s"),
     EffectEntry("armature", STRUCTURAL, ("armature",), nonnegative=True,
                 prior="effort limit × rotor acceleration time / velocity limit",
                 help="I_a q̈, I_a ≥ 0 kg·m²: rotor inertia on M's diagonal"),
     EffectEntry("payload", STRUCTURAL, BODY_PARAMETERS, BODY, prior="mass the effort limits hold at the flange",
+                between_runs="a tool or load mounted",
                 help="change of the flange link's inertial parameters (flange frame): a tool (m > 0) or a mismatch"),
     EffectEntry("link_inertia", STRUCTURAL, BODY_PARAMETERS, BODY, prior="share of each link's mass and moment",
                 help="changes of the other links' inertial parameters (joint frames): CAD errors"),
     EffectEntry("drive_gain", TORQUE, ("gain_error_neg",), prior="share per torque measurement (--max-gain-error)",
                 help="the drive applies g τ_m: gap (1 − g) τ_m, θ = 1 − g"),
     EffectEntry("torque_offset", TORQUE, ("offset",), prior="share of the effort limit",
-                help="the drive applies τ_m + o: gap −o, θ = o N·m"),
+                between_runs="sensor and current-offset drift", help="the drive applies τ_m + o: gap −o, θ = o N·m"),
     EffectEntry("position_ripple", TORQUE, ("sin_amplitude", "cos_amplitude"),
                 grid={"cycles_per_rev": (2, 3, 4, 6, 8, 12, 16, 24, 32, 50, 64, 100)}, required=("cycles_per_rev",),
                 prior="share of the effort limit",
@@ -105,6 +110,8 @@ PER_JOINT = tuple(entry.name for entry in EFFECTS if entry.layout == JOINT)
 BODY_EFFECTS = tuple(entry.name for entry in EFFECTS if entry.layout == BODY)
 FRICTION_EFFECTS = tuple(entry.name for entry in EFFECTS if entry.friction)
 NONNEGATIVE = tuple(entry.name for entry in EFFECTS if entry.nonnegative)
+# What can change between runs of one calibrated robot: the default library of ``kvark diagnose --against``
+CHANGES_BETWEEN_RUNS = tuple(entry.name for entry in EFFECTS if entry.between_runs)
 PRIOR_BOUNDED = tuple(entry.name for entry in EFFECTS if entry.prior)
 # θ values per joint of the effects that have them per joint (not the bodies')
 PARAMETERS_PER_JOINT = {entry.name: len(entry.parameters) for entry in EFFECTS if entry.layout != BODY}

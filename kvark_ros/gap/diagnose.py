@@ -26,10 +26,12 @@
    consistent, drops the joints (bodies) that the joint fit put at a bound of their prior (another effect
    seen through them, as at acceptance); against a calibrated model prefers a payload to link changes that
    explain no more (``payload_first``); names what the data want beyond a prior (``admissible.beyond_priors``)
-   and the flag that allows it; and writes
-   ``diagnosis.json``, ``augmentation.yaml`` (the accepted effects, loadable by
-   ``effects.augmentation_gap``; against an augmented model, its effects first), ``report.md`` and plots
-   (``gap.diagnosis_report``), with the warnings, look-alikes and raw-signal gap of ``gap.plausibility``.
+   and the flag that allows it; and writes ``diagnosis.json``, ``augmentation.yaml`` (the accepted effects,
+   loadable by ``effects.augmentation_gap``; against an augmented model, its effects first), ``report.md`` and
+   plots (``gap.diagnosis_report``), with the warnings, look-alikes and raw-signal gap of ``gap.plausibility``.
+
+Against a calibrated model the library is what changes between runs of one robot (``CHANGES_BETWEEN_RUNS``: a load,
+friction, torque offsets); links, armature, gains, ripple and encoders are its construction, calibrated with it.
 """
 from __future__ import annotations
 
@@ -41,7 +43,7 @@ from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
-from kvark_ros.core.effect_catalog import BODY_EFFECTS, EFFECT_NAMES, PER_JOINT
+from kvark_ros.core.effect_catalog import BODY_EFFECTS, CHANGES_BETWEEN_RUNS, EFFECT_NAMES, PER_JOINT
 from kvark_ros.core.estimation.augmentation import load_augmentation
 from kvark_ros.core.config import ConfigError, EstimatorConfig, load_config
 from kvark_ros.core.estimation.inputs import EstimatorInputs
@@ -314,12 +316,14 @@ def _greedy(fitter: Fitter, effects: Sequence[str], names: Sequence[str], first_
 
 
 def diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float = HOLDOUT,
-             effects: Sequence[str] = EFFECT_NAMES, log: Callable[[str], None] = print,
+             effects: Sequence[str] | None = None, log: Callable[[str], None] = print,
              priors: Priors | None = None) -> Diagnosis:
     """Greedy selection of named effects explaining the gap (see module docstring), within ``priors``
     (default ``Priors()``; completed with the flange link's mass of ``robot`` and every effect's bounds derived from
-    its URDF, ``gap.priors.robot_priors``; ``priors.payload_com`` fixes the payload's centre of mass)."""
+    its URDF, ``gap.priors.robot_priors``; ``priors.payload_com`` fixes the payload's centre of mass). ``effects``
+    None: every effect; against a calibrated model (``robot.augmentation``) only ``CHANGES_BETWEEN_RUNS``."""
     priors = priors or Priors()
+    effects = effects or (EFFECT_NAMES if robot.augmentation is None else CHANGES_BETWEEN_RUNS)
     flange = flange_link_parameters(robot.model, robot.flange_frame_id)
     priors = robot_priors(robot, replace(priors, flange_mass=float(flange[0])))
     with single_threaded_blas():  # hundreds of small least-squares fits
@@ -426,6 +430,7 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
                                     for name in effects}, fitter.w),
         "flange_mass": flange_mass_regrouping(train, robot),
         "against": None if robot.augmentation is None else robot.augmentation.source,
+        "library": list(effects),
         "holdout": holdout, "samples": {"train": len(train), "held_out": len(held)},
         "seconds": round(time.perf_counter() - started, 1),
     }
@@ -512,13 +517,15 @@ def add_parser(subparsers: SubParsers) -> None:
                         help="replace an existing --out whole (once the new output is complete)")
     parser.add_argument("--against", metavar="MODEL_DIR|AUGMENTATION",
                         help="diagnose relative to a model already corrected by this augmentation.yaml (or a model "
-                             "directory's): only what changed since is named (a new tool on a calibrated robot); "
-                             "the written augmentation.yaml holds both")
+                             "directory's): only what changed since is named (a new tool on a calibrated robot), "
+                             "from the effects that change between runs unless --effects says otherwise; the "
+                             "written augmentation.yaml holds both")
     parser.add_argument("--payload-com", type=_com, metavar="X,Y,Z",
                         help="the payload's known centre of mass in the flange frame, m: only its mass and inertia "
                              "are fitted")
-    parser.add_argument("--effects", type=_effect_list, default=EFFECT_NAMES, metavar="A,B",
-                        help=f"restrict the library to these effects (default all: {','.join(EFFECT_NAMES)})")
+    parser.add_argument("--effects", type=_effect_list, default=None, metavar="A,B",
+                        help=f"restrict the library to these effects (default all: {','.join(EFFECT_NAMES)}; with "
+                             f"--against what changes between runs of one robot: {','.join(CHANGES_BETWEEN_RUNS)})")
     parser.add_argument("--max-gain-error", type=float, default=None, metavar="X",
                         help="prior of drive_gain: |1 − g| ≤ X (default from robot_model.torque_measurement: "
                              + ", ".join(f"{w['gain']:g} {m}" for m, w in MEASUREMENT_WIDTHS.items()) + ")")
@@ -543,8 +550,7 @@ def _com(text: str) -> tuple[float, float, float]:
 
 
 def _prior_scale(text: str) -> tuple[str, float]:
-    name, _, value = text.partition("=")
-    name = name.strip()
+    name, value = (part.strip() for part in text.partition("=")[::2])
     if name in FLAGS:
         raise argparse.ArgumentTypeError(f"{name}'s prior has its own flag: {FLAGS[name]}")
     if name not in EFFECT_NAMES:

@@ -32,8 +32,9 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
     r = diag.result
     lines = ["# Model-gap diagnosis", "",
              f"Held-out samples: {r['samples']['held_out']} (last {r['holdout']:.0%} of each recording).", "",
-             *([f"Relative to the model augmented by `{r['against']}`: the effects below are what changed since; "
-                "augmentation.yaml holds both.", ""] if r.get("against") else []),
+             *([f"Relative to the model augmented by `{r['against']}`: the effects below are what changed since, "
+                f"chosen from {', '.join(r['library'])}; augmentation.yaml holds both.", ""]
+               if r.get("against") else []),
              f"Gap RMSE on the selection's signals ({r['gap_filtering']}) and on raw signals "
              f"({r['gap_raw'].get('filter', 'none')}), which published identification figures use.", "",
              "| joint | gap before (N·m) | gap after (N·m) | reduction | raw before | raw after |",

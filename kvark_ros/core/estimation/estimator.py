@@ -177,6 +177,9 @@ class Estimator:
         self.status = Status.WARMUP
         self._p_prev, self._u_prev = np.zeros(robot.n), np.zeros(robot.n)
         self._last_sample = np.full((3, robot.n), np.nan)     # q, q̇, τ_m of the last sample taken (repeats)
+        # The repeat check's machine code now (compiled, or loaded from numba's cache), not on the first sample taken,
+        # where a cold cache stalled the node ~0.4 s and its subscription dropped joint states.
+        repeated_sample(0.0, self._p_prev, self._p_prev, self._p_prev, np.full((3, robot.n), np.nan))
         # A compiled filter (momentum-form K-VARK) runs the whole step compiled (core.estimation.compiled_step; imported
         # here, so that the numpy path never loads numba).
         self._compiled = None

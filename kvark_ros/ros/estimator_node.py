@@ -415,6 +415,11 @@ def main(args: list[str] | None = None) -> int:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # rclpy's signal handler shuts the context down from its own thread; a spin building its wait set at that
+        # moment raises RCLError "the given context is not valid" (ros2/rclpy#398): a SIGTERM or Ctrl-C, not a fault.
+        if rclpy.ok():
+            raise
     finally:
         executor.shutdown()
         node.destroy_node()

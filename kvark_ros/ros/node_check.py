@@ -107,14 +107,14 @@ def start_node(parameters: Path, env: dict[str, str], output) -> subprocess.Pope
                              str(parameters)], env=env, stdout=output, stderr=subprocess.STDOUT)
 
 
-def stop_node(process: subprocess.Popen, timeout: float = 10.0) -> None:
-    """SIGTERM, then SIGKILL after ``timeout`` s."""
+def stop_node(process: subprocess.Popen, timeout: float = 10.0) -> int:
+    """SIGTERM, then SIGKILL after ``timeout`` s; the exit code (0 when the node shut down cleanly)."""
     process.terminate()
     try:
-        process.wait(timeout=timeout)
+        return process.wait(timeout=timeout)
     except subprocess.TimeoutExpired:
         process.kill()
-        process.wait()
+        return process.wait()
 
 
 @contextmanager
@@ -168,7 +168,7 @@ def check_node(config_path: str, bag: str, model_dir: str | None = None, rate: f
             node_log.seek(0)
             raise RuntimeError(f"{exc}; the node's log:\n{node_log.read()[-2000:]}") from exc
         finally:
-            stop_node(process)
+            figures["node_exit_code"] = stop_node(process)
             node_log.seek(0)
             figures["node_log_tail"] = node_log.read()[-2000:]
             node_log.close()
@@ -271,10 +271,11 @@ def _compare(torque: list, config: EstimatorConfig, model_dir: str, bag: str) ->
 
 
 def passed(figures: dict) -> bool:
-    """Every replay estimate came, nothing else, each within ``TOLERANCE``, and every reload succeeded."""
+    """Every replay estimate came, nothing else, each within ``TOLERANCE``, every reload succeeded, and the node
+    ended with exit code 0 on SIGTERM."""
     return (figures["estimates_received"] == figures["estimates_matched"] == figures["estimates_expected"]
             and figures["max_abs_difference"] is not None and figures["max_abs_difference"] <= TOLERANCE
-            and all(success for success, _ in figures["reload_replies"]))
+            and all(success for success, _ in figures["reload_replies"]) and figures["node_exit_code"] == 0)
 
 
 def summary(figures: dict) -> str:
@@ -290,7 +291,8 @@ def summary(figures: dict) -> str:
             f"{number('max_abs_difference', '.2e')} N·m at {figures['rate']:g}x{reload}\n"
             f"[node-check] latency p50 {number('latency_ms_p50')} ms, p99 {number('latency_ms_p99')} ms, "
             f"max {number('latency_ms_max')} ms (at {number('latency_ms_max_at_s')} s); node CPU {figures['node_cpu_cores']:.2f} core; the node "
-            f"reported {figures['node_reported_lost']} joint states lost\n"
+            f"reported {figures['node_reported_lost']} joint states lost; on SIGTERM it exited with code "
+            f"{figures['node_exit_code']}\n"
             f"[node-check] {'MATCH: the node equals replay on every sample' if passed(figures) else 'MISMATCH'}")
 
 
@@ -300,7 +302,8 @@ def add_parser(subparsers: SubParsers) -> None:
         description="Start the estimator node as a process (as shipped, on a ROS domain of its own restricted to "
                     "this machine), play BAG into it at real time x --rate, optionally call ~/reload_model "
                     "mid-run, and compare every τ_ext it publishes with what `kvark replay` computes. Prints the "
-                    "match, the latency p50/p99 and the node's CPU; exit code 1 on a mismatch.")
+                    "match, the latency p50/p99, the node's CPU and its exit code on SIGTERM; exit code 1 on a mismatch "
+                    "or when the node does not exit with 0.")
     parser.add_argument("--config", required=True, help="estimator config YAML (the node's parameter file)")
     parser.add_argument("--model", help="model directory (default: residual_model.model_dir of the config)")
     parser.add_argument("--bag", required=True, help="bag to play (its joint states and effort commands)")

@@ -639,7 +639,7 @@ def test_callback_cost(ros, make_node, contact_bag, record_property):
     """Per-message cost of the node's callbacks through the stand-in (reported, not asserted)."""
     cost = callback_cost(ros, make_node, bag_messages(ros, contact_bag))
     for key, value in cost.items():
-        record_property(key, value)
+        record_property(key, float(value))  # a plain float: properties travel between test processes
     print("\ncallback cost (µs): " + ", ".join(f"{k} {v:.1f}" for k, v in cost.items()))
 
 

@@ -14,7 +14,7 @@ export OMP_NUM_THREADS := 1
 export OPENBLAS_NUM_THREADS := 1
 export MKL_NUM_THREADS := 1
 
-.PHONY: demo docs docs-check test test-newest smoke-newest newest-venv lock versions bench bags model benchmark reliability clean \
+.PHONY: demo docs docs-check test test-newest smoke-newest smoke-newest-only newest-venv lock versions bench bags model benchmark reliability clean \
   generated
 
 KVARK   := $(BIN)/kvark
@@ -69,10 +69,14 @@ reliability: $(STAMP)
 benchmark: $(STAMP)
 	$(KVARK) benchmark --robot panda --out $(RESULTS)/benchmark --force
 
-## test: the whole test suite, on the locked versions
+## test: the whole test suite, on the locked versions: TEST_WORKERS processes, one test file each at a time, then
+## the tests marked realtime (a node process keeping up with a bag's real rate) alone
+TEST_WORKERS ?= 2
+PYTEST_SPLIT = -q -n $(TEST_WORKERS) --dist loadfile -m "not realtime"
 test: $(STAMP)
 	@$(BIN)/python test/versions.py
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest $(PYTEST_SPLIT)
+	$(BIN)/python -m pytest -q -m realtime
 
 ## docs: re-measure every figure of docs/results.md (and README's results at a glance, docs/walkthrough.md's
 ## tables, README's picture) by running the commands that produce them (about 15 min on 2 cores)
@@ -115,11 +119,16 @@ newest-venv:
 	@$(NEWEST)/python test/versions.py
 
 test-newest: newest-venv
-	$(NEWEST)/python -m pytest -q
+	$(NEWEST)/python -m pytest $(PYTEST_SPLIT)
+	$(NEWEST)/python -m pytest -q -m realtime
 
 ## smoke-newest: what CI runs on the newest releases within its budget: train and replay on the committed
-## bags, the training and model-loading tests, and the real ROS 2 node on a bag (with a reload)
+## bags, the training and model-loading tests, and the real ROS 2 node on a bag (with a reload);
+## smoke-newest-only: the same on .venv-newest as it is (CI installs it while the suite runs)
 smoke-newest: newest-venv
+	$(MAKE) smoke-newest-only
+smoke-newest-only:
+	test -x $(NEWEST)/kvark || { echo "no .venv-newest: run make smoke-newest"; exit 1; }
 	rm -rf $(SMOKE)
 	$(NEWEST)/kvark train --config $(CONFIG) --bags $(TRAIN_BAGS) --out $(SMOKE)/model
 	$(NEWEST)/kvark replay --config $(CONFIG) --model $(SMOKE)/model --bag bags/panda_contact --no-bag \

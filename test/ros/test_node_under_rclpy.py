@@ -46,6 +46,7 @@ from kvark_ros.core.config import NODE_NAME, load_config  # noqa: E402
 from kvark_ros.ros import node_check  # noqa: E402
 
 OUT = f"/{NODE_NAME}"
+pytestmark = pytest.mark.realtime        # a node process keeping up with real time: never beside another test process
 DOMAINS = iter(range(201, 233))          # one ROS domain per node process of this module (Fast DDS: at most 232)
 
 

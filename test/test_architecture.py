@@ -53,9 +53,10 @@ def _package(module: str) -> str:
 
 
 def test_core_and_io_import_no_upper_layer():
-    offenders = [f"{module} imports {target}" for module, targets in _imports().items()
+    graph = _imports()
+    offenders = [f"{module} imports {target}" for module, targets in graph.items()
                  if _package(module) in LOWER_LAYERS for target in targets if _package(target) in UPPER_LAYERS]
-    offenders += [f"{module} imports {target}" for module, targets in _imports().items()
+    offenders += [f"{module} imports {target}" for module, targets in graph.items()
                   if _package(module) == "core" for target in targets if _package(target) == "io"]
     assert not offenders, "\n".join(offenders)
 
@@ -63,9 +64,10 @@ def test_core_and_io_import_no_upper_layer():
 def test_live_estimation_imports_nothing_of_learning():
     """What the node loads (``core.estimation``, and the shared modules of ``core``) never imports ``core.learning``,
     not even inside a function: learning is a layer above live estimation."""
-    live = [module for module in _imports() if module.startswith("kvark_ros.core") and not
+    graph = _imports()
+    live = [module for module in graph if module.startswith("kvark_ros.core") and not
             module.startswith("kvark_ros.core.learning")]
-    offenders = [f"{module} imports {target}" for module in live for target in _imports()[module]
+    offenders = [f"{module} imports {target}" for module in live for target in graph[module]
                  if target.startswith("kvark_ros.core.learning")]
     assert not offenders, "\n".join(offenders)
 

@@ -302,8 +302,8 @@ def add_parser(subparsers: SubParsers) -> None:
         description="Start the estimator node as a process (as shipped, on a ROS domain of its own restricted to "
                     "this machine), play BAG into it at real time x --rate, optionally call ~/reload_model "
                     "mid-run, and compare every τ_ext it publishes with what `kvark replay` computes. Prints the "
-                    "match, the latency p50/p99, the node's CPU and its exit code on SIGTERM; exit code 1 on a mismatch "
-                    "or when the node does not exit with 0.")
+                    "match, the latency p50/p99, the node's CPU and its exit code on SIGTERM; exit code 1 on a "
+                    "mismatch or when the node does not exit with 0.")
     parser.add_argument("--config", required=True, help="estimator config YAML (the node's parameter file)")
     parser.add_argument("--model", help="model directory (default: residual_model.model_dir of the config)")
     parser.add_argument("--bag", required=True, help="bag to play (its joint states and effort commands)")

@@ -74,6 +74,13 @@ def _config_with(tmp_path: Path, **changes) -> Path:
     return path
 
 
+
+def _parameters_file(tmp_path: Path, **changes) -> Path:
+    """The node's parameter file for ``_config_with(tmp_path, **changes)``, as ``ros2 run --params-file`` takes it."""
+    config = _config_with(tmp_path, **changes)
+    loaded = load_config(config)
+    return node_check.node_parameters_file(config, loaded, loaded.model_dir, tmp_path)
+
 @pytest.mark.parametrize("rate", [1.0, 2.0], ids=["500Hz", "1kHz"])
 def test_node_process_gives_replays_torque_on_every_sample_through_a_reload(tmp_path, rate):
     """bags/panda_contact played at real time (500 Hz) and twice as fast (1 kHz), ``~/reload_model`` called at
@@ -103,9 +110,7 @@ def test_a_shutdown_racing_the_executor_ends_the_node_with_0(tmp_path, monkeypat
     from rclpy._rclpy_pybind11 import RCLError
     from kvark_ros.ros import estimator_node
 
-    config = _config_with(tmp_path)
-    parameters = node_check.node_parameters_file(config, load_config(config), load_config(config).model_dir,
-                                                 tmp_path)
+    parameters = _parameters_file(tmp_path)
     for key, value in node_check.local_domain(next(DOMAINS), tmp_path / "log").items():
         monkeypatch.setenv(key, value)
 
@@ -133,9 +138,7 @@ class LiveNode:
 
     def __init__(self, tmp_path: Path, **changes) -> None:
         self.domain = next(DOMAINS)
-        config = _config_with(tmp_path, **changes)
-        parameters = node_check.node_parameters_file(config, load_config(config), load_config(config).model_dir,
-                                                     tmp_path)
+        parameters = _parameters_file(tmp_path, **changes)
         ros_env = node_check.local_domain(self.domain, tmp_path / "log")
         env = {**os.environ, **ros_env}
         env.pop("AMENT_PREFIX_PATH", None)                  # as after a pip install: no ament environment

@@ -483,12 +483,11 @@ def _priors_in_force(priors: Priors) -> dict:
 def train_on_diagnosis(config: EstimatorConfig, robot: RobotModel, segments: Sequence[EstimatorInputs], out: Path,
                        baselines: bool, seed: int = 0,
                        log: Callable[[str], None] = print) -> tuple[TrainedModel, dict]:
-    """Diagnose ``segments`` on ``robot`` (the nominal model), write the outputs to ``out/diagnosis``, train on
-    the model augmented with what was named and save it to ``out/model_augmented``.
-
-    Returns the trained model and a summary: the effects and the mean held-out gap before/after (N·m).
-    """
-    diagnosis = diagnose(robot, segments, log=log)
+    """Diagnose ``segments`` on ``robot`` (the nominal model) within the priors of ``config``'s torque measurement,
+    as ``kvark diagnose`` does; write the outputs to ``out/diagnosis``, train on the model augmented with what was
+    named and save it to ``out/model_augmented``. Returns the trained model and a summary: the effects and the mean
+    held-out gap before/after (N·m)."""
+    diagnosis = diagnose(robot, segments, log=log, priors=Priors(torque_measurement=config.torque_measurement))
     for path in write_outputs(diagnosis, robot, out / "diagnosis", config.robot):
         log(f"[diagnose] wrote {path}")
     augmentation = load_augmentation(out / "diagnosis" / "augmentation.yaml", config.joint_names)

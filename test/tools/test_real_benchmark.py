@@ -55,6 +55,10 @@ def test_real_benchmark_reports_false_torque_coverage_and_contacts_nominal_and_a
     assert results["nominal"]["kvark"]["joint_rmse_mean"] < results["nominal"]["momentum"]["joint_rmse_mean"]
     assert (out / "report.md").read_text().count("| kvark |") == 1
     assert (out / "model" / "model.yaml").is_file() and (out / "diagnosis" / "augmentation.yaml").is_file()
+    # The diagnosis is bounded by the priors of the config's torque measurement, as `kvark diagnose` bounds it:
+    # the Panda's link-side sensors (±2 % gain), not the default motor current's ±10 %.
+    priors = json.loads((out / "diagnosis" / "diagnosis.json").read_text())["priors"]
+    assert (priors["torque_measurement"], priors["max_gain_error"]) == ("link_torque_sensor", 0.02)
 
 
 def test_real_benchmark_refuses_a_train_share_that_leaves_nothing_to_judge(recording, tmp_path, capsys):

@@ -102,9 +102,16 @@ def local_domain(domain: int, log_dir: Path) -> dict[str, str]:
 
 
 def start_node(parameters: Path, env: dict[str, str], output) -> subprocess.Popen:
-    """``estimator_node`` as ``ros2 run`` starts it, with the whole environment ``env``, its output to ``output``."""
+    """``estimator_node`` as ``ros2 run`` starts it, with the whole environment ``env``, its output to ``output``.
+
+    It runs the ``kvark_ros`` this process imported, the code replay compares it with: started in the parameter
+    file's folder with that package's parent first on ``PYTHONPATH``, so that no other copy in the working
+    directory (a checkout beside an installed package) is imported instead."""
+    package_parent = str(Path(__file__).resolve().parents[2])
+    path = os.pathsep.join(filter(None, (package_parent, env.get("PYTHONPATH"))))
     return subprocess.Popen([sys.executable, "-m", "kvark_ros.ros.estimator_node", "--ros-args", "--params-file",
-                             str(parameters)], env=env, stdout=output, stderr=subprocess.STDOUT)
+                             str(parameters.resolve())], env={**env, "PYTHONPATH": path},
+                            cwd=parameters.resolve().parent, stdout=output, stderr=subprocess.STDOUT)
 
 
 def stop_node(process: subprocess.Popen, timeout: float = 10.0) -> int:

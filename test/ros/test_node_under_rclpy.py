@@ -133,6 +133,25 @@ def test_a_shutdown_racing_the_executor_ends_the_node_with_0(tmp_path, monkeypat
     assert not rclpy.ok(), "main() shuts rclpy down either way"
 
 
+
+def test_node_check_starts_the_package_it_replays_with_not_a_copy_in_the_working_directory(tmp_path, monkeypatch):
+    """node-check compares the node with replay, so both must be the same code. From a folder holding another
+    ``kvark_ros`` (a checkout beside an installed package; make docs-check's scratch copy), ``python -m`` would
+    import that copy. Here the copy raises on import, and the parameter file lacks the required ``robot``: the
+    node must fail on the parameters, in the package this process imported, not on the import."""
+    shadow = tmp_path / "checkout"
+    (shadow / "kvark_ros").mkdir(parents=True)
+    (shadow / "kvark_ros" / "__init__.py").write_text('raise ImportError("the copy in the working directory")\n')
+    parameters = tmp_path / "parameters.yaml"
+    parameters.write_text(f"{NODE_NAME}:\n  ros__parameters:\n    input: {{queue_depth: 10}}\n")
+    monkeypatch.chdir(shadow)
+    env = {**os.environ, **node_check.local_domain(next(DOMAINS), tmp_path / "log")}
+    with open(tmp_path / "node.log", "w") as log:
+        process = node_check.start_node(Path("..") / "parameters.yaml", env, log)
+        code = process.wait(timeout=60)
+    text = (tmp_path / "node.log").read_text()
+    assert code != 0 and "missing required key 'robot'" in text and "working directory" not in text, text
+
 class LiveNode:
     """A node process on a domain of its own, and a client node in this process to talk to it."""
 

@@ -8,6 +8,7 @@ figure in docs/ is copied by hand.
     python scripts/results_doc.py                      # every section (about 10 min on 2 cores)
     python scripts/results_doc.py --sections real-panda,node
     python scripts/results_doc.py --render             # rewrite the documents from docs/results.json only
+    python scripts/results_doc.py --sections population --keep DIR   # and keep its outputs in DIR/population
 
 ``make docs`` runs it with the project's .venv on PATH.
 """
@@ -250,7 +251,7 @@ SECTIONS = {
     "real-panda": Section(f"kvark benchmark --real {REAL_PANDA} --out {{out}}/real", "docs/results.md",
                           keep_real, render_real),
     "real-ur10e": Section(REAL_UR10E, "docs/results.md", keep_real, render_real),
-    "population": Section("kvark benchmark --population 6 --seed 17 --out {out}/population", "docs/results.md",
+    "population": Section("kvark benchmark --population 6 --seed 18 --out {out}/population", "docs/results.md",
                           keep_population, render_population),
     "node": Section("kvark node-check --config config/panda.yaml --bag bags/panda_contact --reload-at 2.5 "
                     "--json {out}/node.json", "docs/results.md", keep_node, render_node),
@@ -267,10 +268,13 @@ def run_walkthrough(out: Path) -> subprocess.CompletedProcess:
     return subprocess.run(["bash", "-c", script], cwd=copy, text=True, capture_output=True)
 
 
-def measure(name: str, section: Section) -> dict:
-    """Run ``section``'s command in a fresh folder; what it keeps, with the command, date, time and load."""
+def measure(name: str, section: Section, keep: Path | None = None) -> dict:
+    """Run ``section``'s command in a fresh folder (``keep / name`` if given, else a temporary one); what it keeps,
+    with the command, date, time and load."""
     with tempfile.TemporaryDirectory(prefix=f"kvark-{name}-") as temporary:
-        out, load = Path(temporary), os.getloadavg()[0]
+        out, load = (Path(temporary) if keep is None else keep / name), os.getloadavg()[0]
+        if keep is not None:
+            out.mkdir(parents=True)         # a new folder: never mixes with an earlier run's outputs
         started = time.monotonic()
         print(f"[docs] {name}: {section.command}", flush=True)
         if name == "walkthrough":
@@ -343,13 +347,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sections", default=",".join(SECTIONS), help=f"comma-separated: {', '.join(SECTIONS)}")
     parser.add_argument("--render", action="store_true", help="only rewrite the documents from docs/results.json")
+    parser.add_argument("--keep", type=Path, metavar="DIR",
+                        help="write each section's outputs to DIR/SECTION (a new folder) and keep them")
     args = parser.parse_args(argv)
     records = read_json(DATA) if DATA.exists() else {}
     if not args.render:
         for name in args.sections.split(","):
             if name not in SECTIONS:
                 parser.error(f"unknown section {name!r}; choose from {', '.join(SECTIONS)}")
-            records[name] = measure(name, SECTIONS[name])
+            records[name] = measure(name, SECTIONS[name], args.keep)
             DATA.write_text(json.dumps(records, indent=1, ensure_ascii=False) + "\n")
     render({name: records[name] for name in SECTIONS if name in records})
     return 0

@@ -14,7 +14,7 @@ export OMP_NUM_THREADS := 1
 export OPENBLAS_NUM_THREADS := 1
 export MKL_NUM_THREADS := 1
 
-.PHONY: demo docs docs-check test test-newest smoke-newest smoke-newest-only newest-venv lock versions bench bags model benchmark reliability clean \
+.PHONY: demo docs docs-check test test-newest smoke-newest smoke-newest-only smoke-newest-cli smoke-newest-tests newest-venv lock versions bench bags model benchmark reliability clean \
   generated
 
 KVARK   := $(BIN)/kvark
@@ -124,16 +124,21 @@ test-newest: newest-venv
 
 ## smoke-newest: what CI runs on the newest releases within its budget: train and replay on the committed
 ## bags, the training and model-loading tests, and the real ROS 2 node on a bag (with a reload);
-## smoke-newest-only: the same on .venv-newest as it is (CI installs it while the suite runs)
+## smoke-newest-only: the same on .venv-newest as it is (CI installs it while the suite runs). The command-line
+## train and replay run beside the training tests (one process each); the real node's tests run alone after.
 smoke-newest: newest-venv
 	$(MAKE) smoke-newest-only
 smoke-newest-only:
 	test -x $(NEWEST)/kvark || { echo "no .venv-newest: run make smoke-newest"; exit 1; }
+	$(MAKE) --no-print-directory -j2 --output-sync=target smoke-newest-cli smoke-newest-tests
+	$(NEWEST)/python -m pytest -q test/ros/test_node_under_rclpy.py
+smoke-newest-cli:
 	rm -rf $(SMOKE)
 	$(NEWEST)/kvark train --config $(CONFIG) --bags $(TRAIN_BAGS) --out $(SMOKE)/model
 	$(NEWEST)/kvark replay --config $(CONFIG) --model $(SMOKE)/model --bag bags/panda_contact --no-bag \
 	  --out $(SMOKE)/contact
-	$(NEWEST)/python -m pytest -q test/ros/test_node_under_rclpy.py test/tools/test_train_and_replay.py test/core/test_kmp_residual.py
+smoke-newest-tests:
+	$(NEWEST)/python -m pytest -q test/tools/test_train_and_replay.py test/core/test_kmp_residual.py
 
 ## bench: per-step latency of every observer
 bench: $(STAMP)

@@ -133,7 +133,6 @@ def test_a_shutdown_racing_the_executor_ends_the_node_with_0(tmp_path, monkeypat
     assert not rclpy.ok(), "main() shuts rclpy down either way"
 
 
-
 def test_node_check_starts_the_package_it_replays_with_not_a_copy_in_the_working_directory(tmp_path, monkeypatch):
     """node-check compares the node with replay, so both must be the same code. From a folder holding another
     ``kvark_ros`` (a checkout beside an installed package; make docs-check's scratch copy), ``python -m`` would
@@ -151,6 +150,7 @@ def test_node_check_starts_the_package_it_replays_with_not_a_copy_in_the_working
         code = process.wait(timeout=60)
     text = (tmp_path / "node.log").read_text()
     assert code != 0 and "missing required key 'robot'" in text and "working directory" not in text, text
+
 
 class LiveNode:
     """A node process on a domain of its own, and a client node in this process to talk to it."""

@@ -316,13 +316,13 @@ def _greedy(fitter: Fitter, effects: Sequence[str], names: Sequence[str], first_
 
 
 def diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float = HOLDOUT,
-             effects: Sequence[str] | None = None, log: Callable[[str], None] = print,
-             priors: Priors | None = None) -> Diagnosis:
-    """Greedy selection of named effects explaining the gap (see module docstring), within ``priors``
-    (default ``Priors()``; completed with the flange link's mass of ``robot`` and every effect's bounds derived from
-    its URDF, ``gap.priors.robot_priors``; ``priors.payload_com`` fixes the payload's centre of mass). ``effects``
-    None: every effect; against a calibrated model (``robot.augmentation``) only ``CHANGES_BETWEEN_RUNS``."""
-    priors = priors or Priors()
+             effects: Sequence[str] | None = None, log: Callable[[str], None] = print, *,
+             priors: Priors) -> Diagnosis:
+    """Greedy selection of named effects explaining the gap (see module docstring), within ``priors`` (required:
+    their width follows the robot's ``torque_measurement``; completed with the flange link's mass of ``robot`` and
+    every effect's bounds derived from its URDF, ``gap.priors.robot_priors``; ``priors.payload_com`` fixes the
+    payload's centre of mass). ``effects`` None: every effect; against a calibrated model (``robot.augmentation``)
+    only ``CHANGES_BETWEEN_RUNS``."""
     effects = effects or (EFFECT_NAMES if robot.augmentation is None else CHANGES_BETWEEN_RUNS)
     flange = flange_link_parameters(robot.model, robot.flange_frame_id)
     priors = robot_priors(robot, replace(priors, flange_mass=float(flange[0])))

@@ -302,7 +302,7 @@ def test_cli_writes_outputs_from_a_bag(runs, robots, tmp_path_factory):
     aug = yaml.safe_load((out / "augmentation.yaml").read_text())
     assert aug["effects"][0]["name"] == "payload"
     robot = robots["panda"]
-    diag = diagnose(robot, [estimator_inputs(runs[("panda", "payload")])], log=lambda _: None)
+    diag = diagnose(robot, [estimator_inputs(runs[("panda", "payload")])], log=lambda _: None, priors=Priors())
     h = diag.held
     predicted = augmentation_gap(aug, robot, h.q, h.qd, h.qdd, h.tau_m)
     after = np.sqrt(np.mean(np.square(h.gap - predicted), axis=0))
@@ -320,7 +320,7 @@ def test_against_a_corrected_model_only_the_new_effect_is_named(runs, robots, tm
         {"name": "torque_offset", "joint_indices": joints, "theta": [PANDA_OFFSET[j] for j in joints]}]}))
     corrected = _robot("panda", load_augmentation(base_path, names))
     run = runs[("panda", "payload+torque_offset")]
-    diag = diagnose(corrected, [estimator_inputs(run)], log=lambda _: None)
+    diag = diagnose(corrected, [estimator_inputs(run)], log=lambda _: None, priors=Priors())
     assert [e["name"] for e in diag.result["effects"]] == ["payload"]
     assert abs(_effect(diag, "payload")["parameters"]["mass"] - PAYLOAD["mass"]) <= 0.1 * PAYLOAD["mass"]
     assert diag.result["against"] == str(base_path)
@@ -331,7 +331,7 @@ def test_against_a_corrected_model_only_the_new_effect_is_named(runs, robots, tm
     np.testing.assert_allclose(combined.augmentation.torque_effects[0].theta[:, 0], [PANDA_OFFSET[j] for j in joints])
     # what is left is as small as when the nominal model is diagnosed for both effects at once (20 % margin: the
     # two fits differ only in how the offsets were obtained)
-    both = diagnose(robots["panda"], [estimator_inputs(run)], log=lambda _: None)
+    both = diagnose(robots["panda"], [estimator_inputs(run)], log=lambda _: None, priors=Priors())
     assert diag.result["gap_after"]["joint_rmse_mean"] <= 1.2 * both.result["gap_after"]["joint_rmse_mean"]
 
 
@@ -377,7 +377,8 @@ def test_every_start_begins_from_the_urdf_priors_and_the_result_is_the_chosen_st
         return found
 
     monkeypatch.setattr(gap_cli, "_greedy", recording)
-    diag = diagnose(robots["panda"], [estimator_inputs(runs[("panda", "realistic")])], log=lambda _: None)
+    diag = diagnose(robots["panda"], [estimator_inputs(runs[("panda", "realistic")])], log=lambda _: None,
+                    priors=Priors())
     assert len(starts) == gap_cli.STARTS
     tightened = [any(not np.array_equal(end[name], starts[0][name]) for name in end) for _, end in ends]
     assert any(tightened)                    # some start did tighten a prior: the case this test is about

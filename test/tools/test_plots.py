@@ -19,7 +19,7 @@ from kvark_ros.core.learning import training
 from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.gap.diagnosis_plots import effect_contributions, plot_diagnosis
 from kvark_ros.gap.diagnosis_report import Diagnosis
-from kvark_ros.gap.effects import Signals, Term
+from kvark_ros.gap.effects import Priors, Signals, Term
 from kvark_ros.tools.plots import INSET_HALF_WIDTH, MAX_INSETS, contact_onsets, plot_errors, plot_time_histories
 from kvark_ros.tools.report import best_observer, write_replay_report
 from kvark_ros.tools.synthetic import synthetic_stream
@@ -252,7 +252,8 @@ def test_diagnose_prints_its_rounds_with_joint_names(panda):
     offsets = [0.6, -0.5, 0.0, 0.4, 0.0, 0.0, 0.0]
     run = simulate("panda", "excitation", seed=3, duration=4.0, plant={"torque_offset": offsets}, progress=False)
     lines: list[str] = []
-    diag = diagnose(panda, [estimator_inputs(run)], effects=("torque_offset", "armature"), log=lines.append)
+    diag = diagnose(panda, [estimator_inputs(run)], effects=("torque_offset", "armature"), log=lines.append,
+                    priors=Priors())
     text = "\n".join(lines)
     assert "[diagnose] start 1/3: round 1: 2 of 2 effects to try on top of []" in text
     assert "[diagnose] start 1/3: round 2: 1 of 2 effects to try on top of ['torque_offset']" in text

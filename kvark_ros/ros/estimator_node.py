@@ -408,6 +408,12 @@ def main(args: list[str] | None = None) -> int:
         print(f"[{NODE_NAME}] error: {exc}", file=sys.stderr)
         rclpy.try_shutdown()
         return 1
+    except (KeyboardInterrupt, RuntimeError):
+        # Ctrl-C or SIGTERM while the node starts (loading the model, compiling its kernels on a cold cache): rclpy's
+        # handler has shut the context down and the next rcl call raises RCLError. A stop, not a fault.
+        if rclpy.ok():
+            raise
+        return 0
     sys.setswitchinterval(SWITCH_INTERVAL)
     executor = SingleThreadedExecutor()          # one path for inputs, estimates and services (module docstring)
     executor.add_node(node)

@@ -133,6 +133,37 @@ def test_a_shutdown_racing_the_executor_ends_the_node_with_0(tmp_path, monkeypat
     assert not rclpy.ok(), "main() shuts rclpy down either way"
 
 
+@pytest.mark.parametrize("context_shut_down", [True, False], ids=["shutdown", "fault"])
+def test_a_stop_while_the_node_starts_ends_it_with_0(tmp_path, monkeypatch, context_shut_down):
+    """On a cold kernel cache the node takes 10-30 s to start; a Ctrl-C or SIGTERM then reaches it inside
+    ``EstimatorNode()``, and its next rcl call raised RCLError "publisher's context is invalid" with a traceback
+    (seen in make docs-check). Made on demand as in the test above: the constructor shuts the context down and
+    raises as rclpy does. ``main()`` returns 0; the same error with the context still valid propagates."""
+    from rclpy._rclpy_pybind11 import RCLError
+    from kvark_ros.ros import estimator_node
+
+    parameters = _parameters_file(tmp_path)
+    for key, value in node_check.local_domain(next(DOMAINS), tmp_path / "log").items():
+        monkeypatch.setenv(key, value)
+
+    def interrupted_start():
+        if context_shut_down:
+            rclpy.shutdown()
+        raise RCLError("failed to get subscription count: publisher's context is invalid")
+
+    monkeypatch.setattr(estimator_node, "EstimatorNode", interrupted_start)
+    arguments = ["estimator_node", "--ros-args", "--params-file", str(parameters)]
+    try:
+        if context_shut_down:
+            assert estimator_node.main(arguments) == 0
+        else:
+            with pytest.raises(RCLError, match="context is invalid"):
+                estimator_node.main(arguments)
+    finally:
+        rclpy.try_shutdown()
+    assert not rclpy.ok()
+
+
 def test_node_check_starts_the_package_it_replays_with_not_a_copy_in_the_working_directory(tmp_path, monkeypatch):
     """node-check compares the node with replay, so both must be the same code. From a folder holding another
     ``kvark_ros`` (a checkout beside an installed package; make docs-check's scratch copy), ``python -m`` would

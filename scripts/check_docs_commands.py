@@ -47,6 +47,9 @@ def run_document(document: str, copy: Path, folder: Path, blocks: list[Block]) -
     script.write_text("\n".join(parts) + "\n")
     started = time.monotonic()
     env = {key: value for key, value in os.environ.items() if key not in ("VIRTUAL_ENV",)}
+    # The copy's package first, for `kvark` (the shared .venv's editable install points at the project) as for
+    # `python -m`: every block runs the copy, with its own compiled-kernel cache, as in a user's checkout.
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, (str(copy), os.environ.get("PYTHONPATH"))))
     result = subprocess.run(["bash", str(script)], cwd=copy, env=env)
     print(f"docs-check: {document}: {len(blocks)} blocks, {'ok' if result.returncode == 0 else 'FAILED'} "
           f"in {time.monotonic() - started:.0f} s", flush=True)

@@ -412,6 +412,7 @@ def main(args: list[str] | None = None) -> int:
         # Ctrl-C or SIGTERM while the node starts (loading the model, compiling its kernels on a cold cache): rclpy's
         # handler has shut the context down and the next rcl call raises RCLError. A stop, not a fault.
         if rclpy.ok():
+            rclpy.try_shutdown()
             raise
         return 0
     sys.setswitchinterval(SWITCH_INTERVAL)

@@ -109,9 +109,10 @@ def start_node(parameters: Path, env: dict[str, str], output) -> subprocess.Pope
     directory (a checkout beside an installed package) is imported instead."""
     package_parent = str(Path(__file__).resolve().parents[2])
     path = os.pathsep.join(filter(None, (package_parent, env.get("PYTHONPATH"))))
+    parameters = parameters.resolve()
     return subprocess.Popen([sys.executable, "-m", "kvark_ros.ros.estimator_node", "--ros-args", "--params-file",
-                             str(parameters.resolve())], env={**env, "PYTHONPATH": path},
-                            cwd=parameters.resolve().parent, stdout=output, stderr=subprocess.STDOUT)
+                             str(parameters)], env={**env, "PYTHONPATH": path}, cwd=parameters.parent,
+                            stdout=output, stderr=subprocess.STDOUT)
 
 
 def stop_node(process: subprocess.Popen, timeout: float = 10.0) -> int:

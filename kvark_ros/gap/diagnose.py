@@ -197,9 +197,9 @@ def _affected(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     return np.flatnonzero((drop >= MIN_REDUCTION * before) & (drop >= MIN_ABS_REDUCTION))
 
 
-def _prune(fitter: Fitter, terms: list[Term], theta: np.ndarray, cov: np.ndarray | None, r_tr: np.ndarray,
+def _prune(fitter: Fitter, terms: list[Term], theta: np.ndarray, inverse: np.ndarray | None, r_tr: np.ndarray,
            r_he: np.ndarray, bic: float, log: Callable[[str], None], names: Sequence[str]) -> tuple:
-    """Backward pass over the accepted terms (module docstring, step 2): (terms, θ, covariance,
+    """Backward pass over the accepted terms (module docstring, step 2): (terms, θ, G⁻¹ (``Fitter.fit``),
     train and held-out residuals, BIC)."""
     terms = list(terms)
     if len(terms) > 1:
@@ -221,9 +221,9 @@ def _prune(fitter: Fitter, terms: list[Term], theta: np.ndarray, cov: np.ndarray
         log(f"[diagnose] dropped {terms[i].name} on {_named(terms[i].joints, names)} (backward pass): ΔBIC "
             f"{rest_bic - bic:+.1f}, held-out gap {np.round(after, 4).tolist()} → {np.round(without, 4).tolist()}")
         del terms[i]
-        theta, cov, r_tr, r_he = fit
+        theta, inverse, r_tr, r_he = fit
         bic = rest_bic
-    return terms, theta, cov, r_tr, r_he, bic
+    return terms, theta, inverse, r_tr, r_he, bic
 
 
 def _contributions(fitter: Fitter, terms: list[Term], r_he: np.ndarray) -> list[dict]:
@@ -264,9 +264,9 @@ def _greedy(fitter: Fitter, effects: Sequence[str], names: Sequence[str], first_
     """Forward selection and the backward pass (module docstring, step 2), starting in the first
     round from the acceptable candidate of the ``first_choice``-th distinct effect name (0 = the
     best candidate); None when the first round has fewer acceptable effects. Returns (terms, θ,
-    covariance, train and held-out residuals, BIC)."""
+    G⁻¹, train and held-out residuals, BIC)."""
     terms: list[Term] = []
-    theta, cov, r_tr, r_he = fitter.fit(terms)
+    theta, inverse, r_tr, r_he = fitter.fit(terms)
     bic = fitter.bic(r_tr, 0)
     while True:
         log(f"[diagnose] round {len(terms) + 1}: {len(effects) - len(terms)} of {len(effects)} effects to try on "
@@ -276,14 +276,14 @@ def _greedy(fitter: Fitter, effects: Sequence[str], names: Sequence[str], first_
         skip = first_choice if not terms else 0      # first round: effect names still to pass over
         passed: set[str] = set()
         before = _rmse(r_he)
-        for score, term, (th, cv, rt, rh) in (scored if skip else scored[:SCREEN_TOP]):
+        for score, term, (th, gi, rt, rh) in (scored if skip else scored[:SCREEN_TOP]):
             if term.name in passed:
                 continue
             # A candidate's tightened priors (consistent) are kept only if it is accepted: a rejected one must not
             # constrain the bodies of the effects already in, nor the next candidates.
             priors_before = dict(fitter.prior_scale)
-            term, (th, cv, rt, rh) = without_saturated(fitter, terms, term, th, cv, rt, rh)
-            th, cv, rt, rh = consistent(fitter, [*terms, term], th, cv, rt, rh)
+            term, (th, gi, rt, rh) = without_saturated(fitter, terms, term, th, gi, rt, rh)
+            th, gi, rt, rh = consistent(fitter, [*terms, term], th, gi, rt, rh)
             k = sum(t.size for t in terms) + term.size
             new_bic = fitter.bic(rt, k)
             after = _rmse(rh)
@@ -303,7 +303,7 @@ def _greedy(fitter: Fitter, effects: Sequence[str], names: Sequence[str], first_
             red = 1.0 - np.sqrt(np.mean(np.square(after[joints]))) / np.sqrt(np.mean(np.square(before[joints])))
             terms.append(term)
             old_bic = bic
-            theta, cov, r_tr, r_he, bic = th, cv, rt, rh, new_bic
+            theta, inverse, r_tr, r_he, bic = th, gi, rt, rh, new_bic
             log(f"[diagnose] accepted {term.name} {dict(term.variant)} on {_named(term.joints, names)}: "
                 f"held-out gap of {_named(joints, names)} −{red:.0%}, ΔBIC {new_bic - old_bic:+.0f}")
             accepted = True
@@ -312,7 +312,7 @@ def _greedy(fitter: Fitter, effects: Sequence[str], names: Sequence[str], first_
             if not terms and first_choice:
                 return None
             break
-    return _prune(fitter, terms, theta, cov, r_tr, r_he, bic, log, names)
+    return _prune(fitter, terms, theta, inverse, r_tr, r_he, bic, log, names)
 
 
 def diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float = HOLDOUT,
@@ -377,13 +377,13 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
             f"weighted held-out gap {score:.4f}")
         if best is None or (found[-1] < best[-1] and len(found[0]) <= len(best[0])):
             best, best_priors = found, dict(fitter.prior_scale)
-    terms, theta, cov, _, r_he, _ = best
+    terms, theta, inverse, r_tr, r_he, _ = best
     fitter.prior_scale = best_priors                  # the priors that selection ended with
-    theta, cov, _, r_he = consistent(fitter, terms, *fitter.fit(terms))    # the pruned set refitted jointly
+    theta, inverse, r_tr, r_he = consistent(fitter, terms, *fitter.fit(terms))    # the pruned set refitted jointly
     while (bad := bad_bodies(fitter, terms, theta)):
         log(f"[diagnose] dropped {terms[bad[0][0]].name}: still physically inconsistent ({bad[0][2]})")
         terms = [t for i, t in enumerate(terms) if i != bad[0][0]]
-        theta, cov, _, r_he = consistent(fitter, terms, *fitter.fit(terms))
+        theta, inverse, r_tr, r_he = consistent(fitter, terms, *fitter.fit(terms))
     while (saturated := saturated_joints(fitter, terms, theta)):
         index, at_bound = saturated
         term = terms[index]
@@ -391,21 +391,22 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         log(f"[diagnose] dropped {term.name} on {_named(at_bound, robot.joint_names)}: at the bound of its prior "
             f"once fitted with the other effects (another effect seen through it)")
         terms = [*terms[:index], *([Term(term.name, keep, term.variant)] if keep else []), *terms[index + 1:]]
-        theta, cov, _, r_he = consistent(fitter, terms, *fitter.fit(terms))
+        theta, inverse, r_tr, r_he = consistent(fitter, terms, *fitter.fit(terms))
     if robot.augmentation is not None and "payload" in effects:
-        terms, (theta, cov, _, r_he) = payload_first(fitter, terms, (theta, cov, _, r_he), robot.joint_names, log)
+        terms, (theta, inverse, r_tr, r_he) = payload_first(fitter, terms, (theta, inverse, r_tr, r_he),
+                                                            robot.joint_names, log)
     beyond = beyond_priors(fitter, terms, _affected)
     for record in beyond:
         log(f"[diagnose] beyond its prior: {beyond_prior_warning(record, priors, robot.joint_names)}")
     history = _contributions(fitter, terms, r_he)
     gap_after = _rmse(r_he)
     result_effects, thetas = [], []
-    pos = 0
+    pos, cov = 0, fitter.covariance(terms, inverse, r_tr)
     for term, info in zip(terms, history):
         th = theta[pos:pos + term.size]
         cv = None if cov is None else cov[pos:pos + term.size, pos:pos + term.size]
         pos += term.size
-        params, ci = physical_parameters(term, th, cv)
+        params, ci = physical_parameters(term, th, cv, priors.gain_bound)
         joints = list(term.joints) if term.name not in BODY_EFFECTS else info["affected"]
         if term.name == "payload":
             params.update(flange_change(fitter.flange, fitter.flange_map, term.full_theta(th)))

@@ -67,14 +67,16 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
         lines.append("None: the nominal model explains the data to within the noise.")
     for eff in r["effects"]:
         if eff["name"] == "payload":
-            lines.append(f"- **{eff['parameters']['kind']}**: mass change {eff['parameters']['mass_change']:+.3f} kg "
-                         f"(flange link {eff['parameters']['flange_link_mass_urdf']:.3f} → "
+            width = eff["ci95"].get("mass")
+            lines.append(f"- **{eff['parameters']['kind']}**: mass change {eff['parameters']['mass_change']:+.3f}"
+                         f"{'' if width is None else f' ± {width:.3f}'} kg (95 %; flange link "
+                         f"{eff['parameters']['flange_link_mass_urdf']:.3f} → "
                          f"{eff['parameters']['flange_link_mass_total']:.3f} kg)")
         lines.append(f"- **{eff['name']}** on joints {[robot.joint_names[j] for j in eff['joints']]}: "
                      f"held-out gap of those joints −{eff['gap_reduction']:.0%}")
         lines.append(f"  - parameters: `{json.dumps(eff['parameters'])}`")
-        lines.append(f"  - 95 % half-widths (least-squares covariance; samples are correlated, so "
-                     f"optimistic): `{json.dumps(eff['ci95'])}`")
+        lines.append(f"  - 95 % half-widths (least squares with the residuals' correlation in time; a payload's mass "
+                     f"also carries the drive-gain prior; docs/method.md §8.3): `{json.dumps(eff['ci95'])}`")
     lines += ["", "Plots, on the held-out samples: `gap_per_joint.png` (gap RMSE per joint before and after), "
               "`gap_over_time.png` (the gap τ_m − τ_EL over time per joint, before and after), "
               + ("`effect_contributions.png` (each effect's torque, RMS per joint, beside the gap), "

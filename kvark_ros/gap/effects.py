@@ -272,8 +272,9 @@ def theta_split(terms: Sequence[Term], theta: np.ndarray) -> list[np.ndarray]:
     return [theta[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
 
 
-def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None) -> tuple[dict, dict]:
-    """Parameters in physical units and their 95 % half-widths (delta method for derived ones)."""
+def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None, gain_bound: float) -> tuple[dict, dict]:
+    """Parameters in physical units and their 95 % half-widths (delta method for derived ones); ``gain_bound``:
+    |1 − g| of the drives' gain prior, which a payload's mass is read through (``payload_parameters``)."""
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)) if cov is not None else np.full(len(theta), np.nan)
     half = 1.96 * sd
     if term.name == "payload":
@@ -281,7 +282,7 @@ def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None) -
             jac = np.zeros((10, term.size))
             jac[0, 0], jac[1:4, 0], jac[4:, 1:] = 1.0, term.fixed_com, np.eye(6)
             cov = None if cov is None else jac @ cov @ jac.T
-        return payload_parameters(term.full_theta(theta), cov)
+        return payload_parameters(term.full_theta(theta), cov, gain_bound)
     if term.name == "link_inertia":     # per link, joint frame: Δm kg, Δ(m c) kg·m, ΔI kg·m² about the origin
         values, widths = theta.reshape(-1, 10), half.reshape(-1, 10)
         return ({"mass_change": values[:, 0].tolist(), "first_moment_change": values[:, 1:4].tolist(),
@@ -303,9 +304,13 @@ def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None) -
     return params, {key: widths[:, 0].tolist()}
 
 
-def payload_parameters(theta: np.ndarray, cov: np.ndarray | None) -> tuple[dict, dict]:
+def payload_parameters(theta: np.ndarray, cov: np.ndarray | None, gain_bound: float) -> tuple[dict, dict]:
     """Mass, CoM (flange frame) and inertia about the CoM ``[ixx, iyy, izz, ixy, ixz, iyz]`` of a payload change.
-    Its physical consistency is that of the flange link it changes (``plausibility.flange_change``)."""
+    Its physical consistency is that of the flange link it changes (``plausibility.flange_change``).
+
+    The mass's 95 % half-width adds ``gain_bound`` · |m| to the fit's in quadrature: the payload's torque is measured
+    through the drives' gains g, which the data cannot tell from its mass (g m fits as well), so a gain error the
+    calibration left, within |1 − g| ≤ ``gain_bound``, moves the mass by as much; the CoM, a ratio, is not moved."""
     m, h = float(theta[0]), np.asarray(theta[1:4], dtype=float)
     com = h / m
     ixx, ixy, iyy, ixz, iyz, izz = theta[4:10]
@@ -318,7 +323,7 @@ def payload_parameters(theta: np.ndarray, cov: np.ndarray | None) -> tuple[dict,
               "inertia_eigenvalues": eig.tolist()}
     ci: dict[str, Any] = {}
     if cov is not None:
-        ci["mass"] = 1.96 * float(np.sqrt(max(cov[0, 0], 0.0)))
+        ci["mass"] = float(np.hypot(1.96 * np.sqrt(max(cov[0, 0], 0.0)), gain_bound * m))
         com_ci = []
         for i in range(3):
             grad = np.zeros(10)

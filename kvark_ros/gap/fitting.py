@@ -10,6 +10,25 @@ from scipy.optimize import lsq_linear
 from kvark_ros.gap.effects import Priors, Signals, Term
 
 
+def long_run_covariance(scores: np.ndarray) -> np.ndarray:
+    """Σ_l w_l Σ_t s_t s_{t−l}ᵀ (p, p) of a score series (T, p), Bartlett weights w_l = 1 − |l|/(L + 1) (Newey &
+    West 1987; positive semi-definite), L by Andrews' (1991) AR(1) plug-in rule for that kernel:
+    L = 1.1447 (α T)^{1/3}, α = Σ_a 4 ρ_a² σ_a⁴ / ((1 − ρ_a)⁶ (1 + ρ_a)²) / Σ_a σ_a⁴ / (1 − ρ_a)⁴ over the columns,
+    ρ_a and σ_a² each column's lag-one regression coefficient and residual variance (ρ_a within ±0.99, L < T)."""
+    count = len(scores)
+    lead, lag = scores[1:], scores[:-1]
+    rho = np.clip(np.sum(lead * lag, axis=0) / np.maximum(np.sum(lag * lag, axis=0), 1e-300), -0.99, 0.99)
+    sigma4 = np.square(np.mean(np.square(lead - rho * lag), axis=0))
+    alpha = (np.sum(4.0 * rho ** 2 * sigma4 / ((1.0 - rho) ** 6 * (1.0 + rho) ** 2))
+             / max(float(np.sum(sigma4 / (1.0 - rho) ** 4)), 1e-300))
+    bandwidth = min(int(np.ceil(1.1447 * (alpha * count) ** (1.0 / 3.0))), count - 1)
+    total = scores.T @ scores
+    for lag_count in range(1, bandwidth + 1):
+        cross = scores[lag_count:].T @ scores[:-lag_count]
+        total += (1.0 - lag_count / (bandwidth + 1.0)) * (cross + cross.T)
+    return total
+
+
 class Fitter:
     """Bounded weighted least squares of the gap on a set of terms, within ``priors``."""
 
@@ -54,7 +73,8 @@ class Fitter:
         return self._cache[key]
 
     def fit(self, terms: Sequence[Term]) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
-        """(θ, covariance, train residual, held-out residual).
+        """(θ, G⁻¹, train residual, held-out residual); G⁻¹ (p, p), the inverse of the weighted normal matrix with
+        the priors, is the bread of ``covariance``.
 
         Bounded weighted least squares on the normal equations: with G = AᵀW²A (+ the priors' 1/σ² on the
         diagonal) = RᵀR and c = AᵀW²b, ‖W(Aθ − b)‖² + ‖θ/σ‖² = ‖Rθ − R⁻ᵀc‖² + const, so BVLS solves a
@@ -89,10 +109,18 @@ class Fitter:
         a_tr, a_he = (np.concatenate([self.design(term)[i] for term in terms], axis=2) for i in (0, 1))
         r_tr = self.train.gap - a_tr @ theta
         r_he = self.held.gap - a_he @ theta
-        dof = max(1, rows - len(theta))
-        sigma2 = float(np.sum(np.square(r_tr * self.w))) / dof
-        cov = sigma2 * np.linalg.pinv(gram_scaled) / np.outer(scale, scale)
-        return theta, cov, r_tr, r_he
+        return theta, np.linalg.pinv(gram_scaled) / np.outer(scale, scale), r_tr, r_he
+
+    def covariance(self, terms: Sequence[Term], inverse: np.ndarray | None, r_tr: np.ndarray) -> np.ndarray | None:
+        """Cov θ (p, p) of a fit (``inverse``: its G⁻¹, ``r_tr``: its train residual (T, n) N·m): the sandwich
+        G⁻¹ M G⁻¹ with M the long-run covariance of the scores s_t = A_tᵀ W² r_t (docs/method.md §8.3). The gap's
+        misfit is correlated over hundreds of milliseconds; σ² G⁻¹, which takes every sample as independent, gave
+        95 % intervals of a payload's mass that held the true mass on 11 of 30 simulated robots."""
+        if inverse is None:
+            return None
+        design = np.concatenate([self.design(term)[0] for term in terms], axis=2)
+        scores = np.einsum("tjp,j,tj->tp", design, np.square(self.w), r_tr, optimize=True)
+        return inverse @ long_run_covariance(scores) @ inverse
 
     def bic(self, r_tr: np.ndarray, k: int) -> float:
         mse = np.maximum(np.mean(np.square(r_tr), axis=0), 1e-12)

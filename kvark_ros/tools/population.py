@@ -133,8 +133,8 @@ def run_robot(robot: PopulationRobot, plan: BenchmarkPlan, folder: str) -> dict[
 def flange_mass(config: Any, folder: Path, payload_bag: Path, true_mass: float,
                 log: Callable[[str], None]) -> dict[str, Any]:
     """``kvark diagnose --against`` the robot's diagnosed model on its payload scene: whether the new load is named
-    a payload, and its mass change at the flange (kg, the identifiable combination, ``gap.plausibility``) against
-    the drawn payload's mass. The diagnosis goes to ``folder/payload_diagnosis``."""
+    a payload, and its mass change at the flange (kg, the identifiable combination, ``gap.plausibility``) with its
+    95 % half-width against the drawn payload's mass. The diagnosis goes to ``folder/payload_diagnosis``."""
     from kvark_ros.core.estimation.augmentation import load_augmentation
     from kvark_ros.core.estimation.robot_model import RobotModel
     from kvark_ros.gap.diagnose import diagnose
@@ -150,6 +150,7 @@ def flange_mass(config: Any, folder: Path, payload_bag: Path, true_mass: float,
     named = [effect for effect in result.result["effects"] if effect["name"] == "payload"]
     mass = named[0]["parameters"]["mass_change"] if named else None
     return {"true_kg": float(true_mass), "named": bool(named), "mass_kg": mass,
+            "ci95_kg": named[0]["ci95"].get("mass") if named else None,
             "relative_error": None if mass is None else abs(mass - true_mass) / true_mass,
             "effects": [effect["name"] for effect in result.result["effects"]],
             "warnings": len(result.result["warnings"])}
@@ -269,16 +270,20 @@ def acceptance_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[str]
 
 def flange_mass_line(robots: Sequence[Mapping[str, Any]], group: str) -> list[str]:
     """The payload-mass check over ``robots`` (``flange_mass``): how many named the payload with its mass within
-    ``FLANGE_MASS_TOLERANCE``, and the median relative error of those named."""
+    ``FLANGE_MASS_TOLERANCE``, the median relative error of those named, and how many of their 95 % intervals hold
+    the drawn mass (records written before the intervals were kept count as not holding it)."""
     records = [r["augmentation"]["flange_mass"] for r in robots if "flange_mass" in r.get("augmentation", {})]
     if not records:
         return []
     named = [record for record in records if record["named"]]
     within = sum(record["relative_error"] <= FLANGE_MASS_TOLERANCE for record in named)
-    errors = ", ".join(f"{record['mass_kg']:.2f}/{record['true_kg']:.2f} kg" for record in named) or "none"
+    held = sum(abs(r["mass_kg"] - r["true_kg"]) <= (r.get("ci95_kg") or 0.0) for r in named)
+    errors = ", ".join(f"{r['mass_kg']:.2f} ± {r.get('ci95_kg') or float('nan'):.2f} ({r['true_kg']:.2f})"
+                       for r in named) or "none"
     median = f"median error {np.median([r['relative_error'] for r in named]):.0%}, " if named else ""
     return [f"- {group}: payload named with its mass within {FLANGE_MASS_TOLERANCE:.0%} on {within} of "
-            f"{len(records)} robots (named on {len(named)}; {median}identified/true: {errors}): "
+            f"{len(records)} robots (named on {len(named)}; {median}true mass inside the 95 % interval on {held}; "
+            f"identified ± 95 % (true), kg: {errors}): "
             f"{_verdict(within == len(records))}"]
 
 

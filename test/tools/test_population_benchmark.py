@@ -92,25 +92,28 @@ def test_augmented_lines_use_the_nominal_figures_where_the_diagnosis_did_not_run
             "over 2 of 2 cells with oracle ≤ 0.7 × kf (≤ 0.8: pass)") in lines                # median of 0.4 and 0.9
 
 
-def _weighed(robot: dict, true_kg: float, mass_kg: float | None) -> dict:
-    record = {"true_kg": true_kg, "named": mass_kg is not None, "mass_kg": mass_kg, "effects": [],
+def _weighed(robot: dict, true_kg: float, mass_kg: float | None, ci95_kg: float | None = None) -> dict:
+    record = {"true_kg": true_kg, "named": mass_kg is not None, "mass_kg": mass_kg, "ci95_kg": ci95_kg, "effects": [],
               "relative_error": None if mass_kg is None else abs(mass_kg - true_kg) / true_kg, "warnings": 0}
     robot["augmentation"] = {"flange_mass": record}
     return robot
 
 
 def test_the_flange_mass_line_counts_payloads_named_within_ten_percent() -> None:
-    """2.0 kg read as 2.19 (9.5 %: within), 1.0 as 1.11 (11 %: outside), 0.5 not named: 1 of 3 robots, FAIL; the
-    Panda alone passes. Robots without a payload diagnosis give no line."""
+    """2.0 kg read as 2.19 ± 0.25 (9.5 %: within; its interval holds 2.0), 1.0 as 1.11 ± 0.05 (11 %: outside; 0.11
+    off, beyond its interval), 0.5 not named: 1 of 3 robots, FAIL; the Panda alone passes. Robots without a payload
+    diagnosis give no line."""
     scene = {"payload": _scene(0.5, 1.0, 1.0, 0.6)}
-    robots = [_weighed(_robot(0, "panda", scene), 2.0, 2.19), _weighed(_robot(1, "ur5", scene), 1.0, 1.11),
+    robots = [_weighed(_robot(0, "panda", scene), 2.0, 2.19, 0.25), _weighed(_robot(1, "ur5", scene), 1.0, 1.11, 0.05),
               _weighed(_robot(2, "ur10", scene), 0.5, None)]
     groups = aggregate(robots)
     pooled = [line for line in groups["pooled"]["acceptance"] if "payload named" in line]
     assert pooled == ["- pooled: payload named with its mass within 10% on 1 of 3 robots (named on 2; median error "
-                      "10%, identified/true: 2.19/2.00 kg, 1.11/1.00 kg): FAIL"]
-    assert groups["panda"]["acceptance"][-1].endswith("on 1 of 1 robots (named on 1; median error 9%, "
-                                                      "identified/true: 2.19/2.00 kg): pass")
+                      "10%, true mass inside the 95 % interval on 1; identified ± 95 % (true), kg: 2.19 ± 0.25 (2.00), "
+                      "1.11 ± 0.05 (1.00)): FAIL"]
+    assert groups["panda"]["acceptance"][-1].endswith("on 1 of 1 robots (named on 1; median error 9%, true mass "
+                                                      "inside the 95 % interval on 1; identified ± 95 % (true), kg: "
+                                                      "2.19 ± 0.25 (2.00)): pass")
     assert not any("payload named" in line for line in aggregate([_robot(0, "ur5", scene)])["pooled"]["acceptance"])
 
 

@@ -22,6 +22,7 @@ from kvark_ros.core.observer_catalog import OBSERVER_NAMES
 NODE_NAME = "kvark_estimator"              # the node's name: the top-level key of every config file
 WRENCH_FRAMES = ("base", "end_effector")
 VB_VARIANTS = ("paper", "huang", "smoothed", "window")
+VB_WINDOW_SOURCES = ("estimate", "prior")
 MEASUREMENTS = ("momentum", "difference")
 TORQUE_SOURCES = ("effort_commands", "effort_commands_joint_state", "joint_states_effort")
 OUTPUT_QOS = ("reliable", "sensor_data")
@@ -160,6 +161,10 @@ KEYS: tuple[Key, ...] = (
          **_unit(0.001, 60.0)),
     _key("filter.vb_prior_dof", "number", 1.0, "window variant: prior strength ν₀ (in windows) of the IW prior around the trained Σ_d",
          **_unit(0.0, 1e6, low_open=True)),
+    _key("filter.vb_window_source", "choice", "estimate",
+         "window variant: the τ_ext estimate whose change the window statistic reads: estimate = the adaptive "
+         "filter's own, prior = a twin filter on the same data held at the trained Σ_d0 (docs/method.md §4.6)",
+         choices=VB_WINDOW_SOURCES),
     _key("filter.prior_bandwidth", "number", 20.0,
          "rad/s; momentum form, VB variants (kvark, gmr_gp, oracle): natural frequency of the τ_ext random walk "
          "prior in free motion; the VB and the onset detector raise it at contact (docs/method.md §4.12)",

@@ -49,6 +49,19 @@ class ReferenceWindowVB(WindowVB):
         self.pz = self.pz + h * self.tz                                # Cov(p⁻, z) = (F P)_pz
         return self.q * h
 
+    def twin_step(self, h: float, p: np.ndarray, u_prev: np.ndarray, mu: np.ndarray, w_p: np.ndarray,
+                  sigma_d0: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, ...]:
+        """One step of the twin filter held at Σ_d0 (window_vb.py's docstring), (K1)-(K5) as the filter's own with
+        w_p = q_p h + h² σ²_r; returns its ν, S, k1, k2."""
+        b, hc = self.twin_b, h * self.twin_c
+        p_pred = self.twin_p + h * (u_prev - mu + self.twin_tau)               # eq. 28
+        a = self.twin_a + h * (b + b + hc) + w_p + sigma_d0 * (h * h / 3.0)     # (K2)
+        b, c = b + hc + sigma_d0 * (h / 2.0), self.twin_c + sigma_d0
+        nu = p - p_pred
+        self.twin_p, self.twin_tau, self.twin_a, self.twin_b, self.twin_c, s, k2 = joseph_update(
+            p_pred, self.twin_tau, a, b, c, nu, R)
+        return nu, s, a / s, k2
+
     def update(self, h: float, nu: np.ndarray, s: np.ndarray, k1: np.ndarray, k2: np.ndarray, tau: np.ndarray,
                b: np.ndarray, c: np.ndarray) -> np.ndarray:
         """Update the snapshots with the filter's gain and close a window every m samples.
@@ -142,8 +155,9 @@ class ReferenceOnsetDetector(OnsetDetector):
 class ReferenceMomentumFilter(KVARKMomentumFilter):
     """``KVARKMomentumFilter`` with the numpy step (kvark_momentum.py's docstring): the kernel's oracle."""
 
-    def _make_window(self, prior_density: np.ndarray, window: int, forgetting: float, prior_dof: float) -> WindowVB:
-        return ReferenceWindowVB(prior_density, window, forgetting, prior_dof)
+    def _make_window(self, prior_density: np.ndarray, window: int, forgetting: float, prior_dof: float,
+                     twin: bool) -> WindowVB:
+        return ReferenceWindowVB(prior_density, window, forgetting, prior_dof, twin)
 
     def _make_onset(self, n: int, threshold: float, window: int) -> OnsetDetector:
         return ReferenceOnsetDetector(n, threshold, window)
@@ -154,6 +168,10 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
         variant = self.variant
         if self.p_hat is None:
             self.p_hat = p_prev
+        window = self.window
+        if window is not None and window.twin and window.twin_p is None:     # the twin starts as the filter
+            window.twin_p, window.twin_tau, window.twin_a, window.twin_b, window.twin_c = (
+                self.p_hat, self.tau, self.a, self.b, self.c)
         mu, var_star = self.residual.predict(qd, q, g) if self.needs else self.residual.predict(qd)  # 22-23
         self.prediction = mu, var_star
         tau_pred = self.tau                                             # eq. 41
@@ -171,7 +189,8 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
         if not variant.vb:
             self._update(p_pred, tau_pred, a_f, b_f, c_f, nu, R, sigma_d, dt)
         elif self.window is not None:
-            self._window_update(p_pred, tau_pred, a_f, b_f, c_f, nu, R, dt)
+            twin = (p, u_prev, mu, self.q_p * dt + hh * residual_var)
+            self._window_update(p_pred, tau_pred, a_f, b_f, c_f, nu, R, dt, twin)
         else:
             self._vb_update(p_pred, tau_pred, a_f, b_f, c_f, nu, R, sigma_d, dt)
         if self.onset is not None:                                      # part of the Σ_d adaptation
@@ -253,12 +272,19 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
         w_hat = (k2 - r / s) * nu
         return np.maximum(w_hat * w_hat + self.c - c0 - r * r / s + 2.0 * k2 * r, 0.0)
 
-    def _window_update(self, p_pred, tau_pred, a, b, c, nu, R, h) -> None:
-        """The windowed VB (``window_vb``) around the update (K2)-(K5) on (p, τ) with its Σ_d."""
-        sigma_d = self.window.predict(h, self.tau, self.b, self.c)
+    def _window_update(self, p_pred, tau_pred, a, b, c, nu, R, h, twin) -> None:
+        """The windowed VB (``window_vb``) around the update (K2)-(K5) on (p, τ) with its Σ_d; ``twin``: p_k, u_k−1,
+        μ_* and w_p for the window's twin."""
+        window = self.window
+        sigma_d = window.predict(h, window.twin_tau if window.twin else self.tau, window.twin_b if window.twin
+                                 else self.b, window.twin_c if window.twin else self.c)
         self._update(p_pred, tau_pred, a, b, c, nu, R, sigma_d, h)     # eqs. 42-45 on (p, τ)
+        if window.twin:
+            w_nu, w_s, w_k1, w_k2 = window.twin_step(h, *twin, self.q_tau * h, R)
+            self.Sigma_d = window.update(h, w_nu, w_s, w_k1, w_k2, window.twin_tau, window.twin_b, window.twin_c)
+            return
         k1 = (a + self._last_q[0]) / self._last_s
-        self.Sigma_d = self.window.update(h, nu, self._last_s, k1, self._last_k2, self.tau, self.b, self.c)
+        self.Sigma_d = window.update(h, nu, self._last_s, k1, self._last_k2, self.tau, self.b, self.c)
 
 
 def reference_of(observer: KVARKMomentumFilter) -> ReferenceMomentumFilter:

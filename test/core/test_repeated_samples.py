@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from kvark_ros.core.estimation.estimator import Estimator, Status
-from kvark_ros.core.estimation.step_kernel import STALE_MOTION, repeated_sample
+from kvark_ros.core.estimation.input_kernels import STALE_MOTION, repeated_sample
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream
 
 

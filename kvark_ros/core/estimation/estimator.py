@@ -28,7 +28,7 @@ from kvark_ros.core.estimation.model_store import TrainedModel, load_model
 from kvark_ros.core.estimation.observers import Observer, ResidualPredictor, make_observer
 from kvark_ros.core.estimation.payload import Payload, inertia_problem
 from kvark_ros.core.estimation.robot_model import RobotModel, condition_number, urdf_sha256
-from kvark_ros.core.estimation.step_kernel import repeated_sample
+from kvark_ros.core.estimation.input_kernels import repeated_sample
 from kvark_ros.core.estimation.tare import Tare
 
 

@@ -98,6 +98,7 @@ class Option(Layout):
     SMOOTHED = enum.auto()              # its smoothed reading (lag-one RTS, §4.5)
     ITERATIONS = enum.auto()            # its VB passes per sample
     SNAPSHOTS = enum.auto()             # the window's snapshots S (split_state)
+    TWIN = enum.auto()                  # the window reads the twin filter held at q_τ (vb_window_source: prior, §4.6)
 
 
 class Vec(Layout):
@@ -118,6 +119,11 @@ class Vec(Layout):
     SCALE = enum.auto()                 # the window's Υ (eq. 38), N²·m²/s
     MEAN = enum.auto()                  # the residual's μ_* (eq. 22), N·m
     VAR = enum.auto()                   # the residual's σ²_* (eq. 23), N²·m²
+    TWIN_P = enum.auto()                # the window's twin filter at Σ_d0 = q_τ h (§4.6): p̂, N·m·s
+    TWIN_TAU = enum.auto()              # its τ̂, N·m
+    TWIN_A = enum.auto()                # its P = [[a, b], [b, c]]: a, (N·m·s)²
+    TWIN_B = enum.auto()                # b, N²·m²·s
+    TWIN_C = enum.auto()                # c, N²·m²
 
 
 VEC_ROWS = len(Vec)

@@ -17,7 +17,7 @@ from kvark_ros.core.estimation.step_kernel import jit
 
 # sha256 of core/estimation/kernel_layouts.py (its docstring): update it with the file,
 # so numba recompiles these kernels.
-LAYOUTS_DIGEST = "e3f7b509cccb6ef74fe7b4fa8b3b9e55324e50cbb16e71381d652e7c183d1acf"
+LAYOUTS_DIGEST = "cab639908df2725df8cd74b912546dadde650aaeca188f6e00d9aa7c8faf2411"
 
 
 @jit

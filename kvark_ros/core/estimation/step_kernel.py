@@ -8,28 +8,14 @@ references (test/core/reference_filter.py, ``Estimator``) are readable: the same
 the kernels to them on the committed bags (``test/core/test_compiled_step_matches_reference.py``). The buffers and
 calls are in ``observers.kvark_kernel`` (the filter) and ``core.estimation.compiled_step`` (the estimator).
 
-``estimate_step`` computes, in the reference's order:
-- p = rnea(q, 0, q̇) − g = M q̇ (eq. 5) and u = Cᵀ q̇ − g + τ_m (− τ_aug) (eq. 7) from pinocchio's outputs (§2.1);
-- the filter step ``kvark_step`` on (h, q̇_k, p_k, u_{k−1}) (§4.2-4.7);
-- the tare offset (§4.10), the static friction band σ²_s(q̇) on Cov τ̂ (§4.11) and the interval factors c on the
-  reported Cov τ̂ = diag(c) P diag(c) + diag σ²_s (§4.13; the tests keep P + diag σ²_s);
-- the wrench ``F = J⁺ τ̂``, ``J⁺ = (J Jᵀ + δ² I)⁻¹ J`` and ``Σ_F = J⁺ P J⁺ᵀ`` (§1.4), with one Cholesky of
-  ``J Jᵀ − δ² I`` deciding whether some σ_i < δ (§1.4.1): then the caller adds ``weak_wrench``, which takes J's
-  SVD for the weak directions and adds the damping bias to Σ_F (a third of random Panda poses, most of the UR5's
-  bench stream);
-- the contact statistic ``τ̂ᵀ S⁻¹ τ̂`` (§7.1-7.2) and the collision excess ``max_j(|τ̂_j| − z σ_j)`` (§4.10).
-The K-VARK momentum filter's P is diagonal (joints are independent 2-state filters, §4.2), so Cov τ̂, S and the
-collision's σ are diagonal: S's Cholesky factor is diag(√S_jj), and ``J⁺ P J⁺ᵀ = Σ_j P_jj J⁺_j J⁺_jᵀ``.
-
-Differences from the reference are rounding only (≤ 1e-14 of each quantity's largest value on the committed bags):
-sums run in another order than BLAS's, ``exp`` is libm's, the Cholesky factors are ours rather than LAPACK's (a pose
-whose smallest σ equals δ to ~1e-16 could be called regular by one and weak by the other).
+What ``estimate_step`` computes, in the reference's order, and how far the two differ: ``core.estimation.compiled_step``.
 
 Arguments, not globals. Every array numba receives from Python costs ~1 k instructions to unbox, so the state and
 the constants come packed (``split_state``, ``split_constants``). And numba's cache (``cache=True``: ``__pycache__``
 next to this file, or ``NUMBA_CACHE_DIR``) is keyed on this file's content only: a function inlined from another
 module, or another module's constant frozen into the machine code, would stay stale in the cache when only that
-module changed. So all compiled code lives in this file and takes every number from its arguments, from this
+module changed. So all compiled code the kernels call lives in this file (the input checks, which call none,
+are ``input_kernels``) and takes every number from its arguments, from this
 file's own constants or from the layouts this file pins (below; ``test/core/test_compiled_step_matches_reference.py``
 checks both). Arrays other than C-contiguous float64 ones (a strided view, float32) compile one more
 specialization, once.
@@ -51,7 +37,7 @@ from kvark_ros.core.estimation.kernel_layouts import (CONST_ROWS, PARAMS, VEC_RO
 
 # sha256 of core/estimation/kernel_layouts.py (module docstring): update it with the file,
 # so numba recompiles the kernels.
-LAYOUTS_DIGEST = "e3f7b509cccb6ef74fe7b4fa8b3b9e55324e50cbb16e71381d652e7c183d1acf"
+LAYOUTS_DIGEST = "cab639908df2725df8cd74b912546dadde650aaeca188f6e00d9aa7c8faf2411"
 
 # Samples of evidence from which an accepted jump counts as a step; on fewer its Var τ̂ also spans an impulse (§4.7).
 ONSET_EVIDENCE = 2
@@ -154,7 +140,7 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
     if options[Option.KMP]:
         kmp_predict(qd, support, weights_t, consts, params[Param.VARIANCE_FLOOR], mean, var)  # eqs. 21-23
     heteroscedastic, ewma, nis = options[Option.HETEROSCEDASTIC], options[Option.EWMA], options[Option.NIS]
-    window, onset, stride = options[Option.WINDOW], options[Option.ONSET], options[Option.STRIDE]
+    window, onset, stride, twin = options[Option.WINDOW], options[Option.ONSET], options[Option.STRIDE], options[Option.TWIN]
     vb_iw, smoothed = options[Option.VB_IW], options[Option.SMOOTHED]
     passes, forget_vb = options[Option.ITERATIONS] if vb_iw else 1, params[Param.VB_FORGETTING]
     hh = dt * dt
@@ -216,24 +202,29 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
                 sd = vb_scale[j] / (vb_dof[j] - 2.0)                   # eqs. 39-40 (n = 1 per joint)
         if vb_iw:
             sigma_d[j] = sd
-        if window:                                                     # snapshots: the same gain (§4.6)
+        if window:                                     # snapshots of the twin's τ̂ or of τ̂, with its gain (§4.6)
+            q0 = consts[Const.Q_TAU, j]
+            w_nu, w_s, w_k1, w_k2, w_tau, w_b, w_c = nu, s, k1, k2, tau[j], b[j], c[j]
+            if twin:
+                w_nu, w_s, w_k1, w_k2 = _twin_step(j, vec, dt, p[j], u_prev[j], consts[Const.Q_P, j] * dt + hh
+                                                   * residual_var, q0 * dt, R)
+                w_tau, w_b, w_c = vec[Vec.TWIN_TAU, j], vec[Vec.TWIN_B, j], vec[Vec.TWIN_C, j]
             for i in range(snapshots):
                 pzi = pz[j, i]
-                gain = pzi / s
-                z[j, i] = z[j, i] + gain * nu
+                gain = pzi / w_s
+                z[j, i] = z[j, i] + gain * w_nu
                 zz[j, i] = zz[j, i] - pzi * gain
-                tz[j, i] = tz[j, i] - k2 * pzi
-                pz[j, i] = pzi - k1 * pzi
+                tz[j, i] = tz[j, i] - w_k2 * pzi
+                pz[j, i] = pzi - w_k1 * pzi
             if closing:
-                q0 = consts[Const.Q_TAU, j]
                 if full:
-                    delta = tau[j] - z[j, column]
-                    stat = (delta * delta + c[j] + zz[j, column] - 2.0 * tz[j, column]) / age[column]  # s_j
+                    delta = w_tau - z[j, column]
+                    stat = (delta * delta + w_c + zz[j, column] - 2.0 * tz[j, column]) / age[column]  # s_j
                     scale[j] = forget * scale[j] + max(stat, 0.0) / snapshots                        # eq. 38
                     prior = params[Param.PRIOR_DOF]
                     q[j] = min((prior * q0 + scale[j]) / (prior + dof), params[Param.MAX_RATIO] * q0)  # eq. 39
-                z[j, column], zz[j, column] = tau[j], c[j]                 # new snapshot z_j = τ_k
-                pz[j, column], tz[j, column] = b[j], c[j]
+                z[j, column], zz[j, column] = w_tau, w_c                   # new snapshot z_j = τ_k
+                pz[j, column], tz[j, column] = w_b, w_c
             sigma_d[j] = q[j] * dt
         if onset:                                                      # GLR sums with this sample (§4.7)
             nu_s, r_s = nu / s, R / s
@@ -266,6 +257,25 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
 
 
 @jit
+def _twin_step(j: int, vec: np.ndarray, dt: float, p: float, u_prev: float, w_p: float, sd: float,
+               R: float) -> tuple[float, float, float, float]:
+    """Joint j of the window's twin (§4.6): the filter of ``kvark_step`` with Σ_d = ``sd`` = q_τ h fixed, the same
+    μ_*, R and w_p = q_p h + h² σ²_r, updated in ``vec``'s TWIN rows; returns its ν, S, k1, k2."""
+    tau, b, hc = vec[Vec.TWIN_TAU, j], vec[Vec.TWIN_B, j], dt * vec[Vec.TWIN_C, j]
+    p_pred = vec[Vec.TWIN_P, j] + dt * (u_prev - vec[Vec.MEAN, j] + tau)           # eq. 28
+    a_m = vec[Vec.TWIN_A, j] + dt * (b + b + hc) + w_p + sd * (dt * dt / 3.0)      # (K2)
+    b_m, c_m = b + hc + sd * (dt / 2.0), vec[Vec.TWIN_C, j] + sd
+    nu = p - p_pred
+    s = a_m + R                                                                    # (K3)
+    k1, k2, g = a_m / s, b_m / s, R / s
+    vec[Vec.TWIN_A, j] = g * (g * a_m) + k1 * (k1 * R)                             # (K5), Joseph form
+    vec[Vec.TWIN_B, j] = g * (b_m - k2 * a_m) + k1 * (k2 * R)
+    vec[Vec.TWIN_C, j] = c_m - k2 * (b_m + b_m - k2 * s)
+    vec[Vec.TWIN_P, j], vec[Vec.TWIN_TAU, j] = p_pred + k1 * nu, tau + k2 * nu     # (K4)
+    return nu, s, k1, k2
+
+
+@jit
 def _accept_jumps(gate: bool, threshold: float, slot: int, p_hat: np.ndarray, tau: np.ndarray, a: np.ndarray,
                   b: np.ndarray, c: np.ndarray, ep: np.ndarray, et: np.ndarray, d: np.ndarray, info: np.ndarray) -> int:
     """Accept the jumps whose ℓ_θ = d²/C exceeds the threshold (once any d² > threshold C) and correct the state,
@@ -295,39 +305,6 @@ def _accept_jumps(gate: bool, threshold: float, slot: int, p_hat: np.ndarray, ta
         ep[j, :], et[j, :], d[j, :], info[j, :] = 0.0, 0.0, 0.0, 0.0  # no hypothesis spans the correction
         accepted += 1
     return accepted
-
-
-@jit
-def finite_sample(stamp: float, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> bool:
-    """Whether stamp + q·q + q̇·q̇ + τ_m·τ_m is finite: no NaN or Inf, no |x| > ~1e154 (the reference's test)."""
-    total = stamp
-    for j in range(q.shape[0]):
-        total += q[j] * q[j] + qd[j] * qd[j] + tau_m[j] * tau_m[j]
-    return math.isfinite(total)
-
-
-# A joint moving this far (rad) in one period must show it in q: far above q's floating-point rounding (~1e-15 rad),
-# far below any encoder's step.
-STALE_MOTION = 1e-9
-
-
-@jit
-def repeated_sample(dt: float, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray, last: np.ndarray) -> bool:
-    """Whether q, q̇ and τ_m (n,) equal ``last``'s rows 0-2 (3, n) exactly although some joint moved more than
-    ``STALE_MOTION`` in the ``dt`` s since: a driver that re-sent its last state under a new stamp (docs/method.md
-    §4.8); an arm at rest may repeat its state exactly (a noise-free simulator). Otherwise the sample is stored in
-    ``last`` for the next call."""
-    n = q.shape[0]
-    same, moved = True, False
-    for j in range(n):
-        if q[j] != last[0, j] or qd[j] != last[1, j] or tau_m[j] != last[2, j]:
-            same = False
-            break
-        moved = moved or abs(qd[j]) * dt > STALE_MOTION
-    if not same:
-        for j in range(n):
-            last[0, j], last[1, j], last[2, j] = q[j], qd[j], tau_m[j]
-    return same and moved
 
 
 @jit

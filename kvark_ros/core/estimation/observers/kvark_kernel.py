@@ -104,6 +104,8 @@ class PackedWindowVB(WindowVB):
     age = _Packed("scal", slice(1, None))
     q, scale = _Packed("vec", Vec.Q), _Packed("vec", Vec.SCALE)
     count, dof = _PackedScalar("ints", Counter.COUNT, int), _PackedScalar("scal", 0, float)
+    twin_p, twin_tau, twin_a, twin_b, twin_c = (_Packed("vec", row) for row in (Vec.TWIN_P, Vec.TWIN_TAU, Vec.TWIN_A,
+                                                                              Vec.TWIN_B, Vec.TWIN_C))
 
     def __init__(self, packed: KernelState, *args) -> None:
         self.packed = packed
@@ -168,7 +170,8 @@ class KVARKKernelFilter(KVARKMomentumFilter):
             Option.WINDOW: window is not None, Option.ONSET: self.onset is not None, Option.KMP: kmp,
             Option.STRIDE: window.stride if window is not None else 1, Option.SUPPORT: support,
             Option.ONSETS: onsets, Option.VB_IW: self._vb_iw, Option.SMOOTHED: self.vb_smoothed,
-            Option.ITERATIONS: self.vb_iterations, Option.SNAPSHOTS: WINDOW_SNAPSHOTS}), dtype=np.int64)
+            Option.ITERATIONS: self.vb_iterations, Option.SNAPSHOTS: WINDOW_SNAPSHOTS,
+            Option.TWIN: window is not None and window.twin}), dtype=np.int64)
         self._compile()
 
     def declared_params(self) -> dict[Param, float]:
@@ -219,8 +222,8 @@ class KVARKKernelFilter(KVARKMomentumFilter):
     def prepare(self, dt: float, qd: np.ndarray, p_prev: np.ndarray, q: np.ndarray | None = None,
                 g: np.ndarray | None = None) -> None:
         """What precedes ``kvark_step`` in Python: the first step after a reset primes the state (p̂ = p_{k−1}, every
-        snapshot at τ̂_0, the per-sample VB's prior at its steady state with mean Σ_d0 = q_τ h, as the numpy
-        reference); a residual model other than a q̇-only KMP is evaluated (one with second inputs compiled)."""
+        snapshot at τ̂_0, the window's twin at the filter's state, the per-sample VB's prior at its steady state with
+        mean Σ_d0 = q_τ h, as the numpy reference); a residual model other than a q̇-only KMP is evaluated (one with second inputs compiled)."""
         if self._vb_iw and not self._has_Sigma_d:
             rho = self.vb_forgetting
             self.vb_dof = np.full(self.n, 2.0 + (1.0 / (1.0 - rho) if rho < 1.0 else 1.0))
@@ -234,6 +237,9 @@ class KVARKKernelFilter(KVARKMomentumFilter):
                 if window.z is None:
                     window.z, window.zz = self.tau[:, None], self.c[:, None]     # broadcast over the snapshots
                     window.pz, window.tz = self.b[:, None], self.c[:, None]
+                if window.twin and window.twin_p is None:                       # the twin starts as the filter
+                    window.twin_p, window.twin_tau = self.p_hat, self.tau
+                    window.twin_a, window.twin_b, window.twin_c = self.a, self.b, self.c
                 if self.Sigma_d is None:
                     self.Sigma_d = np.zeros(self.n)
             self._has_prediction = self._has_prediction or self._kmp_inside

@@ -85,17 +85,19 @@ class KVARKMomentumFilter(KFMomentumObserver):
         self.vb_forgetting = per_sample.vb_forgetting                  # ρ
         vb = self.variant.vb
         self.window = (self._make_window(noise.torque_density, per_sample.vb_window, per_sample.vb_forgetting,
-                                         settings.vb_prior_dof) if vb and settings.vb_variant == "window" else None)
+                                         settings.vb_prior_dof, settings.vb_window_source == "prior")
+                       if vb and settings.vb_variant == "window" else None)
         self.onset = (self._make_onset(residual.n_joints, settings.onset_threshold, per_sample.onset_window)
                       if vb and settings.onset_threshold > 0.0 else None)
         self._apply_runtime(settings)
         super().__init__(residual.n_joints, noise, initial_covariance=settings.initial_covariance, settings=settings)
         self.name = name or variant
 
-    def _make_window(self, prior_density: np.ndarray, window: int, forgetting: float, prior_dof: float) -> WindowVB:
+    def _make_window(self, prior_density: np.ndarray, window: int, forgetting: float, prior_dof: float,
+                     twin: bool) -> WindowVB:
         """The windowed VB's state (``WindowVB``'s arguments): packed in the compiled subclass, stepped in numpy by the
         test reference."""
-        return WindowVB(prior_density, window, forgetting, prior_dof)
+        return WindowVB(prior_density, window, forgetting, prior_dof, twin)
 
     def _make_onset(self, n: int, threshold: float, window: int) -> OnsetDetector:
         """The onset detector's state (``OnsetDetector``'s arguments): packed in the compiled subclass, stepped in numpy

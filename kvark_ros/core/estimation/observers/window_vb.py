@@ -20,6 +20,14 @@ returns to the prior:
 with m = L / S samples between closing windows. ``filter.vb_iterations`` does not apply: the
 statistic comes from samples already filtered.
 
+Whose τ̂ (``filter.vb_window_source``). Read from the adaptive filter itself (``estimate``, the default) the statistic
+feeds back: a larger Σ_d passes more of the residual model's coloured misfit into τ̂, whose change raises Σ_d further.
+On a robot whose misfit at new motions exceeds training's (the population's UR-class arms, issue 28) one push lifts
+q̂ to ~10³ q_0 and the misfit holds it there through free motion. ``prior`` reads the snapshots of a twin filter on
+the same data held at Σ_d0 = q_0 h (``WindowVB.twin_*``): nothing feeds back, but its smoothed snapshots, read under
+a model at Σ_d0, shrink every change toward that prior, so q̂ also rises far less when τ_ext does move
+(docs/method.md §4.6 has the measured trade).
+
 Here: the component's constants and state; its arithmetic runs in the compiled step (``step_kernel.kvark_step``),
 its numpy reference is ``ReferenceWindowVB`` in test/core/reference_filter.py.
 """
@@ -38,19 +46,24 @@ class WindowVB(Stateful):
 
     State (arrays (n,) or (n, S)): ``z`` ẑ_j N·m, ``zz`` Var z_j N²·m², ``pz`` and ``tz``
     Cov(p, z_j) N·m²·s and Cov(τ, z_j) N²·m², ``age`` (S,) seconds since snapshot j, ``q`` the
-    current density estimate N²·m²/s, ``scale``/``dof`` the forgotten data parts of Υ and λ.
+    current density estimate N²·m²/s, ``scale``/``dof`` the forgotten data parts of Υ and λ; with ``twin`` the twin
+    filter's ``twin_p`` p̂ N·m·s, ``twin_tau`` τ̂ N·m and P = [[``twin_a``, ``twin_b``], [``twin_b``, ``twin_c``]].
     Per step the filter predicts the snapshots before and updates them after its own (p, τ) update (module docstring).
     """
 
-    STATE = ("z", "zz", "pz", "tz", "age", "count", "q", "scale", "dof")
+    STATE = ("z", "zz", "pz", "tz", "age", "count", "q", "scale", "dof", "twin_p", "twin_tau", "twin_a", "twin_b",
+             "twin_c")
 
-    def __init__(self, prior_density: np.ndarray, window: int, forgetting: float, prior_dof: float) -> None:
-        """``prior_density``: q_0 (n,) N²·m²/s; ``window``: L samples; ``forgetting``: ρ; ``prior_dof``: ν_0."""
+    def __init__(self, prior_density: np.ndarray, window: int, forgetting: float, prior_dof: float,
+                 twin: bool = False) -> None:
+        """``prior_density``: q_0 (n,) N²·m²/s; ``window``: L samples; ``forgetting``: ρ; ``prior_dof``: ν_0;
+        ``twin``: the snapshots are the twin's at Σ_d0 (``vb_window_source: prior``), else the filter's own."""
         self.q0 = prior_density
         self.n = len(prior_density)
         self.stride = max(window // WINDOW_SNAPSHOTS, 1)               # m, samples between closing windows
         self.forgetting = forgetting
         self.prior_dof = prior_dof
+        self.twin = twin
         self.reset()
 
     def reset(self) -> None:
@@ -62,3 +75,4 @@ class WindowVB(Stateful):
         self.q = self.q0.copy()
         self.scale = np.zeros(self.n)
         self.dof = 0.0
+        self.twin_p = self.twin_tau = self.twin_a = self.twin_b = self.twin_c = None   # set at the first step

@@ -163,7 +163,8 @@ KEYS: tuple[Key, ...] = (
          **_unit(0.0, 1e6, low_open=True)),
     _key("filter.vb_window_source", "choice", "estimate",
          "window variant: the τ_ext estimate whose change the window statistic reads: estimate = the adaptive "
-         "filter's own, prior = a twin filter on the same data held at the trained Σ_d0 (docs/method.md §4.6)",
+         "filter's own, prior = a twin filter on the same data held at the trained Σ_d0, as filtered (docs/method.md "
+         "§4.6); prior suits motor-current arms, whose misfit the adaptive filter's own statistic feeds back",
          choices=VB_WINDOW_SOURCES),
     _key("filter.prior_bandwidth", "number", 20.0,
          "rad/s; momentum form, VB variants (kvark, gmr_gp, oracle): natural frequency of the τ_ext random walk "

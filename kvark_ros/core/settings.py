@@ -52,8 +52,8 @@ class FilterSettings:
     1000000.0]."""
     vb_window_source: Literal["estimate", "prior"] = "estimate"
     """window variant: the τ_ext estimate whose change the window statistic reads: estimate = the adaptive filter's own,
-    prior = a twin filter on the same data held at the trained Σ_d0 (docs/method.md §4.6). Allowed: one of estimate,
-    prior."""
+    prior = a twin filter on the same data held at the trained Σ_d0, as filtered (docs/method.md §4.6); prior suits
+    motor-current arms, whose misfit the adaptive filter's own statistic feeds back. Allowed: one of estimate, prior."""
     prior_bandwidth: float = 20.0
     """rad/s; momentum form, VB variants (kvark, gmr_gp, oracle): natural frequency of the τ_ext random walk prior in
     free motion; the VB and the onset detector raise it at contact (docs/method.md §4.12). Allowed: a number in (0.0,

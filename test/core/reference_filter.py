@@ -52,7 +52,7 @@ class ReferenceWindowVB(WindowVB):
     def twin_step(self, h: float, p: np.ndarray, u_prev: np.ndarray, mu: np.ndarray, w_p: np.ndarray,
                   sigma_d0: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, ...]:
         """One step of the twin filter held at Σ_d0 (window_vb.py's docstring), (K1)-(K5) as the filter's own with
-        w_p = q_p h + h² σ²_r; returns its ν, S, k1, k2."""
+        w_p = q_p h + h² σ²_r; returns its gain k1, k2."""
         b, hc = self.twin_b, h * self.twin_c
         p_pred = self.twin_p + h * (u_prev - mu + self.twin_tau)               # eq. 28
         a = self.twin_a + h * (b + b + hc) + w_p + sigma_d0 * (h * h / 3.0)     # (K2)
@@ -60,7 +60,7 @@ class ReferenceWindowVB(WindowVB):
         nu = p - p_pred
         self.twin_p, self.twin_tau, self.twin_a, self.twin_b, self.twin_c, s, k2 = joseph_update(
             p_pred, self.twin_tau, a, b, c, nu, R)
-        return nu, s, a / s, k2
+        return a / s, k2
 
     def update(self, h: float, nu: np.ndarray, s: np.ndarray, k1: np.ndarray, k2: np.ndarray, tau: np.ndarray,
                b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -70,9 +70,10 @@ class ReferenceWindowVB(WindowVB):
         ``tau``, ``b``, ``c``: the filter's posterior at k. Returns Σ_d = q h (n,), N²·m².
         """
         pz, tz = self.pz, self.tz
-        gain_z = pz / s[:, None]                                       # K for z: Cov(z, p⁻) / S
-        self.z = self.z + gain_z * nu[:, None]
-        self.zz = self.zz - pz * gain_z                                # P_zz − Cov(z, p⁻)² / S
+        if not self.twin:                                              # the twin's snapshots stay as taken
+            gain_z = pz / s[:, None]                                   # K for z: Cov(z, p⁻) / S
+            self.z = self.z + gain_z * nu[:, None]
+            self.zz = self.zz - pz * gain_z                            # P_zz − Cov(z, p⁻)² / S
         self.tz = tz - k2[:, None] * pz                                # Cov(x⁺, z) = Cov(x⁻, z) − K Cov(p⁻, z)
         self.pz = pz - k1[:, None] * pz
         self.age = self.age + h
@@ -280,8 +281,8 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
                                  else self.b, window.twin_c if window.twin else self.c)
         self._update(p_pred, tau_pred, a, b, c, nu, R, sigma_d, h)     # eqs. 42-45 on (p, τ)
         if window.twin:
-            w_nu, w_s, w_k1, w_k2 = window.twin_step(h, *twin, self.q_tau * h, R)
-            self.Sigma_d = window.update(h, w_nu, w_s, w_k1, w_k2, window.twin_tau, window.twin_b, window.twin_c)
+            w_k1, w_k2 = window.twin_step(h, *twin, self.q_tau * h, R)
+            self.Sigma_d = window.update(h, nu, self._last_s, w_k1, w_k2, window.twin_tau, window.twin_b, window.twin_c)
             return
         k1 = (a + self._last_q[0]) / self._last_s
         self.Sigma_d = window.update(h, nu, self._last_s, k1, self._last_k2, self.tau, self.b, self.c)

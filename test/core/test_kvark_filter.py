@@ -240,22 +240,24 @@ def test_window_vb_process_noise_grows_after_a_step_and_returns_to_the_prior(pan
 
 
 @pytest.mark.parametrize("form", MOMENTUM_FORMS)
-def test_window_vb_learns_the_density_of_a_random_walk(panda_config, rng, form):
+@pytest.mark.parametrize("source, low", [("estimate", 0.6), ("prior", 0.4)])
+def test_window_vb_learns_the_density_of_a_random_walk(panda_config, rng, form, source, low):
     """τ_ext a random walk 100× faster than the prior: the learned density is the true one, shrunk
-    toward the prior by its weight (ν_0 = 1 against ~4 forgotten windows: about 0.8 of the truth)."""
+    toward the prior by its weight (ν_0 = 1 against ~4 forgotten windows: about 0.8 of the truth). Read from the twin
+    at the prior, whose filtered τ̂ lags the walk, a little less (measured 0.57-0.79 against 0.68-0.95)."""
     n, h, q0, R = 3, 0.002, 0.05, 1e-6
-    observer = _window_filter(panda_config, n, q0, R, form=form)
+    observer = _window_filter(panda_config, n, q0, R, form=form, vb_window_source=source)
     q_true = 100.0 * q0
     learned = [observer.window.q.copy() for k in _random_walk_run(observer, n, h, q_true, R, 5000, rng) if k >= 1000]
     ratio = np.mean(learned, axis=0) / q_true
-    assert np.all((ratio > 0.6) & (ratio < 1.0))
+    assert np.all((ratio > low) & (ratio < 1.0))
 
 
 @pytest.mark.parametrize("form", MOMENTUM_FORMS)
 @pytest.mark.parametrize("source", ["estimate", "prior"])
 def test_window_vb_state_covariances_match_the_augmented_matrix_filter(panda_config, rng, form, source):
     """The snapshot bookkeeping (Cov(p, z), Cov(τ, z), Var z) equals a 3-state KF on [p, τ, z]: of the filter itself
-    (``estimate``) or of its twin at Σ_d0 = q_0 h (``prior``)."""
+    (``estimate``, z smoothed), or of its twin at Σ_d0 = q_0 h with z kept as taken (``prior``, no gain on z)."""
     h, q0, R = 0.002, 0.05, 1e-6
     observer = _window_filter(panda_config, 1, q0, R, form=form, vb_window_source=source)
     twin = source == "prior"
@@ -291,8 +293,11 @@ def test_window_vb_state_covariances_match_the_augmented_matrix_filter(panda_con
             x[0] += h * u[0]
             S = P[0, 0] + R
             K = P[:, 0] / S
+            if twin:                                        # the twin's snapshot stays as taken: no gain on z
+                K[2] = 0.0
             x = x + K * (p[0] - x[0])
-            P = P - np.outer(K, P[0])
+            gain = np.eye(3) - np.outer(K, [1.0, 0.0, 0.0])
+            P = gain @ P @ gain.T + R * np.outer(K, K)      # Joseph form: right for any gain
             window = observer.window
             assert np.allclose([p_hat, tau, window.z[0, 0]], x, rtol=1e-6, atol=1e-12)
             assert np.allclose([window.pz[0, 0], window.tz[0, 0], window.zz[0, 0]],
@@ -304,10 +309,11 @@ def test_window_vb_state_covariances_match_the_augmented_matrix_filter(panda_con
 def test_the_twin_breaks_the_loop_by_which_misfit_holds_the_adapted_density(panda_config, form):
     """One joint whose momentum carries a coloured misfit the model does not know (AR(1), 40 ms, σ 1 N·m, as the UR
     class's residual misfit) and a 5 N·m push for 0.5 s. Read from the filter itself, the window's q̂ is pushed up
-    and the misfit then holds it high (measured: median q̂/q_0 1.7 before the push, 70 in the 2 s after it ends), so
-    the filter passes more misfit after the push (τ̂ RMSE 1.00 against 0.91 before). Read from the twin at Σ_d0,
-    q̂ goes back to its level before the push (1.2 and 1.2) and the error after it is 0.62 N·m. Margins: 10× and
-    1.5× on q̂, 0.8× on the RMSE."""
+    (peak 470 q_0) and the misfit then holds it high (median q̂/q_0 1.7 before the push, 70 in the 2 s after it
+    ends), so the filter passes more misfit after the push (τ̂ RMSE 1.00 N·m against 0.91 before). Read from the
+    twin at Σ_d0, q̂ still rises at the push (peak 126 q_0 against 12.7 before) and goes back to its level before it
+    (13.2), and the error after it is 0.83 N·m. Margins: 10× and 1.5× on q̂ after the push, 5× on the peak, 0.9× on
+    the RMSE (figures of the numpy reference; the kernel's agree to rounding)."""
     h, R, steps = 0.002, 1e-3, 3000
     q0 = 320.0 * R                                           # ω_p = 20 rad/s: q_τ = ω⁴ R h (§4.12, q_p ≈ 0)
     phi = np.exp(-h / 0.04)
@@ -325,11 +331,13 @@ def test_the_twin_breaks_the_loop_by_which_misfit_holds_the_adapted_density(pand
             tau, _ = observer.step(h, zero, p, p_prev, zero)
             p_prev = p
             ratio[k], error[k] = observer.window.q[0] / q0, tau[0] - push
-        results[source] = (np.median(ratio[500:1000]), np.median(ratio[2000:]), np.sqrt(np.mean(error[2000:] ** 2)))
-    (before, after, _), (twin_before, twin_after, twin_rmse) = results["estimate"], results["prior"]
+        results[source] = (np.median(ratio[500:1000]), np.median(ratio[2000:]), ratio[1000:1100].max(),
+                           np.sqrt(np.mean(error[2000:] ** 2)))
+    (before, after, _, rmse), (twin_before, twin_after, twin_peak, twin_rmse) = results["estimate"], results["prior"]
     assert after > 10.0 * before
     assert twin_after < 1.5 * twin_before
-    assert twin_rmse < 0.8 * results["estimate"][2]
+    assert twin_peak > 5.0 * twin_before
+    assert twin_rmse < 0.9 * rmse
 
 
 def _onset_filter(panda_config, n: int, threshold: float, form: str):

@@ -8,7 +8,7 @@ references (test/core/reference_filter.py, ``Estimator``) are readable: the same
 the kernels to them on the committed bags (``test/core/test_compiled_step_matches_reference.py``). The buffers and
 calls are in ``observers.kvark_kernel`` (the filter) and ``core.estimation.compiled_step`` (the estimator).
 
-What ``estimate_step`` computes, in the reference's order, and how far the two differ: ``core.estimation.compiled_step``.
+What ``estimate_step`` computes, in the reference's order, and how far the two differ: ``compiled_step``.
 
 Arguments, not globals. Every array numba receives from Python costs ~1 k instructions to unbox, so the state and
 the constants come packed (``split_state``, ``split_constants``). And numba's cache (``cache=True``: ``__pycache__``
@@ -140,7 +140,8 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
     if options[Option.KMP]:
         kmp_predict(qd, support, weights_t, consts, params[Param.VARIANCE_FLOOR], mean, var)  # eqs. 21-23
     heteroscedastic, ewma, nis = options[Option.HETEROSCEDASTIC], options[Option.EWMA], options[Option.NIS]
-    window, onset, stride, twin = options[Option.WINDOW], options[Option.ONSET], options[Option.STRIDE], options[Option.TWIN]
+    window, onset, stride = options[Option.WINDOW], options[Option.ONSET], options[Option.STRIDE]
+    twin = options[Option.TWIN]
     vb_iw, smoothed = options[Option.VB_IW], options[Option.SMOOTHED]
     passes, forget_vb = options[Option.ITERATIONS] if vb_iw else 1, params[Param.VB_FORGETTING]
     hh = dt * dt
@@ -202,18 +203,19 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
                 sd = vb_scale[j] / (vb_dof[j] - 2.0)                   # eqs. 39-40 (n = 1 per joint)
         if vb_iw:
             sigma_d[j] = sd
-        if window:                                     # snapshots of the twin's τ̂ or of τ̂, with its gain (§4.6)
+        if window:                                     # snapshots of τ̂ or of the twin's τ̂, with its gain (§4.6)
             q0 = consts[Const.Q_TAU, j]
-            w_nu, w_s, w_k1, w_k2, w_tau, w_b, w_c = nu, s, k1, k2, tau[j], b[j], c[j]
+            w_k1, w_k2, w_tau, w_b, w_c = k1, k2, tau[j], b[j], c[j]
             if twin:
-                w_nu, w_s, w_k1, w_k2 = _twin_step(j, vec, dt, p[j], u_prev[j], consts[Const.Q_P, j] * dt + hh
-                                                   * residual_var, q0 * dt, R)
+                w_k1, w_k2 = _twin_step(j, vec, dt, p[j], u_prev[j], consts[Const.Q_P, j] * dt + hh * residual_var,
+                                        q0 * dt, R)
                 w_tau, w_b, w_c = vec[Vec.TWIN_TAU, j], vec[Vec.TWIN_B, j], vec[Vec.TWIN_C, j]
             for i in range(snapshots):
                 pzi = pz[j, i]
-                gain = pzi / w_s
-                z[j, i] = z[j, i] + gain * w_nu
-                zz[j, i] = zz[j, i] - pzi * gain
+                if not twin:                           # the twin's snapshots stay as taken: filtered, not smoothed
+                    gain = pzi / s
+                    z[j, i] = z[j, i] + gain * nu
+                    zz[j, i] = zz[j, i] - pzi * gain
                 tz[j, i] = tz[j, i] - w_k2 * pzi
                 pz[j, i] = pzi - w_k1 * pzi
             if closing:
@@ -258,9 +260,9 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
 
 @jit
 def _twin_step(j: int, vec: np.ndarray, dt: float, p: float, u_prev: float, w_p: float, sd: float,
-               R: float) -> tuple[float, float, float, float]:
+               R: float) -> tuple[float, float]:
     """Joint j of the window's twin (§4.6): the filter of ``kvark_step`` with Σ_d = ``sd`` = q_τ h fixed, the same
-    μ_*, R and w_p = q_p h + h² σ²_r, updated in ``vec``'s TWIN rows; returns its ν, S, k1, k2."""
+    μ_*, R and w_p = q_p h + h² σ²_r, updated in ``vec``'s TWIN rows; returns its gain k1, k2."""
     tau, b, hc = vec[Vec.TWIN_TAU, j], vec[Vec.TWIN_B, j], dt * vec[Vec.TWIN_C, j]
     p_pred = vec[Vec.TWIN_P, j] + dt * (u_prev - vec[Vec.MEAN, j] + tau)           # eq. 28
     a_m = vec[Vec.TWIN_A, j] + dt * (b + b + hc) + w_p + sd * (dt * dt / 3.0)      # (K2)
@@ -272,7 +274,7 @@ def _twin_step(j: int, vec: np.ndarray, dt: float, p: float, u_prev: float, w_p:
     vec[Vec.TWIN_B, j] = g * (b_m - k2 * a_m) + k1 * (k2 * R)
     vec[Vec.TWIN_C, j] = c_m - k2 * (b_m + b_m - k2 * s)
     vec[Vec.TWIN_P, j], vec[Vec.TWIN_TAU, j] = p_pred + k1 * nu, tau + k2 * nu     # (K4)
-    return nu, s, k1, k2
+    return k1, k2
 
 
 @jit

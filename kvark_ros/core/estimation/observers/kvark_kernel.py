@@ -223,7 +223,8 @@ class KVARKKernelFilter(KVARKMomentumFilter):
                 g: np.ndarray | None = None) -> None:
         """What precedes ``kvark_step`` in Python: the first step after a reset primes the state (p̂ = p_{k−1}, every
         snapshot at τ̂_0, the window's twin at the filter's state, the per-sample VB's prior at its steady state with
-        mean Σ_d0 = q_τ h, as the numpy reference); a residual model other than a q̇-only KMP is evaluated (one with second inputs compiled)."""
+        mean Σ_d0 = q_τ h, as the numpy reference); a residual model other than a q̇-only KMP is evaluated (one with
+        second inputs compiled)."""
         if self._vb_iw and not self._has_Sigma_d:
             rho = self.vb_forgetting
             self.vb_dof = np.full(self.n, 2.0 + (1.0 / (1.0 - rho) if rho < 1.0 else 1.0))

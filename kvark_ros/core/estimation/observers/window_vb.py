@@ -23,9 +23,10 @@ statistic comes from samples already filtered.
 Whose τ̂ (``filter.vb_window_source``). Read from the adaptive filter itself (``estimate``, the default) the statistic
 feeds back: a larger Σ_d passes more of the residual model's coloured misfit into τ̂, whose change raises Σ_d further.
 On a robot whose misfit at new motions exceeds training's (the population's UR-class arms, issue 28) one push lifts
-q̂ to ~10³ q_0 and the misfit holds it there through free motion. ``prior`` reads the snapshots of a twin filter on
-the same data held at Σ_d0 = q_0 h (``WindowVB.twin_*``): nothing feeds back, but its smoothed snapshots, read under
-a model at Σ_d0, shrink every change toward that prior, so q̂ also rises far less when τ_ext does move
+q̂ to ~10³ q_0 and the misfit holds it there through free motion. ``prior`` reads a twin filter on the same data held
+at Σ_d0 = q_0 h (``twin_*``), its snapshots kept as taken (filtered, not smoothed: under a model at Σ_d0 the smoother
+would give most of any change to the random walk's past), with P_zz and Cov(τ, z) the covariance of the two filtered
+errors. Nothing feeds back; the twin lags a fast change, so q̂ rises somewhat less when τ_ext moves
 (docs/method.md §4.6 has the measured trade).
 
 Here: the component's constants and state; its arithmetic runs in the compiled step (``step_kernel.kvark_step``),
@@ -57,7 +58,8 @@ class WindowVB(Stateful):
     def __init__(self, prior_density: np.ndarray, window: int, forgetting: float, prior_dof: float,
                  twin: bool = False) -> None:
         """``prior_density``: q_0 (n,) N²·m²/s; ``window``: L samples; ``forgetting``: ρ; ``prior_dof``: ν_0;
-        ``twin``: the snapshots are the twin's at Σ_d0 (``vb_window_source: prior``), else the filter's own."""
+        ``twin``: the snapshots are the twin's at Σ_d0, as taken (``vb_window_source: prior``), else the filter's own,
+        smoothed."""
         self.q0 = prior_density
         self.n = len(prior_density)
         self.stride = max(window // WINDOW_SNAPSHOTS, 1)               # m, samples between closing windows

@@ -182,11 +182,7 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
         for _ in range(passes):                                        # M VB passes re-read eq. 42 (§4.4)
             q_a = sd * (hh / 3.0)                                      # (K2): q_τ h³/3, q_τ h²/2, q_τ h
             a_m, b_m, c_m = a_f + q_a, b_f + sd * (dt / 2.0), c_f + sd
-            s = a_m + R                                                # (K3)
-            k1, k2, g = a_m / s, b_m / s, R / s
-            a[j] = g * (g * a_m) + k1 * (k1 * R)                       # (K5), Joseph form
-            b[j] = g * (b_m - k2 * a_m) + k1 * (k2 * R)
-            c[j] = c_m - k2 * (b_m + b_m - k2 * s)
+            s, k1, k2, g, a[j], b[j], c[j] = _update(a_m, b_m, c_m, R)  # (K3), (K5)
             p_hat[j] = p_pred + k1 * nu                                # (K4)
             tau[j] = tau_pred + k2 * nu
             if vb_iw:
@@ -268,13 +264,20 @@ def _twin_step(j: int, vec: np.ndarray, dt: float, p: float, u_prev: float, w_p:
     a_m = vec[Vec.TWIN_A, j] + dt * (b + b + hc) + w_p + sd * (dt * dt / 3.0)      # (K2)
     b_m, c_m = b + hc + sd * (dt / 2.0), vec[Vec.TWIN_C, j] + sd
     nu = p - p_pred
-    s = a_m + R                                                                    # (K3)
-    k1, k2, g = a_m / s, b_m / s, R / s
-    vec[Vec.TWIN_A, j] = g * (g * a_m) + k1 * (k1 * R)                             # (K5), Joseph form
-    vec[Vec.TWIN_B, j] = g * (b_m - k2 * a_m) + k1 * (k2 * R)
-    vec[Vec.TWIN_C, j] = c_m - k2 * (b_m + b_m - k2 * s)
+    _, k1, k2, _, vec[Vec.TWIN_A, j], vec[Vec.TWIN_B, j], vec[Vec.TWIN_C, j] = _update(a_m, b_m, c_m, R)
     vec[Vec.TWIN_P, j], vec[Vec.TWIN_TAU, j] = p_pred + k1 * nu, tau + k2 * nu     # (K4)
     return k1, k2
+
+
+@jit
+def _update(a_m: float, b_m: float, c_m: float,
+            R: float) -> tuple[float, float, float, float, float, float, float]:
+    """One joint's 2-state measurement update of P⁻ = [[a_m, b_m], [b_m, c_m]] by the momentum, H = [1, 0]: returns
+    S, the gain K = [k1, k2], g = R / S = 1 − k1 and P⁺'s a, b, c in Joseph form ((K3), (K5), docs/method.md §5.5)."""
+    s = a_m + R                                                                    # (K3)
+    k1, k2, g = a_m / s, b_m / s, R / s
+    return (s, k1, k2, g, g * (g * a_m) + k1 * (k1 * R),                           # (K5), Joseph form
+            g * (b_m - k2 * a_m) + k1 * (k2 * R), c_m - k2 * (b_m + b_m - k2 * s))
 
 
 @jit

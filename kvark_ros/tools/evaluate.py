@@ -45,7 +45,7 @@ from kvark_ros.core.estimation.observers import ResidualPredictor, make_observer
 from kvark_ros.core.estimation.robot_model import RobotModel, urdf_sha256
 from kvark_ros.io import BagError
 from kvark_ros.io.alignment import read_inputs
-from kvark_ros.tools.metrics import observer_metrics, static_band
+from kvark_ros.tools.metrics import in_motion, observer_metrics, static_band
 from kvark_ros.tools.replay import GroundTruth, ObserverRun, bag_fields, ground_truth, plant_oracle, run_observer
 
 if TYPE_CHECKING:
@@ -139,7 +139,9 @@ def evaluate_task(setup: Setup, bag: str, observer: str, keep_run: bool = False)
     inputs, truth, fields = decoded(setup, bag)
     result = run_observer(config, trained, inputs, observer, oracle,
                           truth_tau=None if truth is None else truth.tau_ext)
-    return TaskResult(bag, observer, fields, observer_metrics(result, truth, inputs.stamp, static_band(trained)),
+    moving = in_motion(inputs.qd, config.filter.stiction_velocity)
+    return TaskResult(bag, observer, fields,
+                      observer_metrics(result, truth, inputs.stamp, static_band(trained), moving),
                       run=result if keep_run else None)
 
 

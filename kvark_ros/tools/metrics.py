@@ -24,7 +24,15 @@ def static_band(trained: Any) -> np.ndarray | None:
     return None if trained is None or trained.stiction is None else trained.stiction.band
 
 
-def observer_metrics(result: Any, truth: Any, stamp: np.ndarray, band: np.ndarray | None = None) -> dict[str, Any]:
+def in_motion(qd: np.ndarray, stiction_velocity: float) -> np.ndarray:
+    """(T, n) bool: the joint samples whose |q̇| (T, n) rad/s is above ``filter.stiction_velocity`` v_s rad/s, where
+    the static friction band σ²_s = F_s²/3 · exp(−(q̇/v_s)²) has fallen below e⁻¹ of its width at rest (docs/method.md
+    §4.11)."""
+    return np.abs(qd) > stiction_velocity
+
+
+def observer_metrics(result: Any, truth: Any, stamp: np.ndarray, band: np.ndarray | None = None,
+                     moving: np.ndarray | None = None) -> dict[str, Any]:
     """metrics.json's per-observer entry: joint/force/moment RMSE (:func:`wrench_metrics`: force and moment over the
     samples with a known true wrench), |error| statistics, coverage95, µs/step,
     and the contact and collision flags' figures (:func:`contact_metrics`, under ``contact`` and ``collision``);
@@ -34,6 +42,9 @@ def observer_metrics(result: Any, truth: Any, stamp: np.ndarray, band: np.ndarra
     share of joint samples whose true τ_ext lies within the reported ±1.96 σ (None without a covariance); the
     other covariance figures are :func:`calibration_metrics`' (each None without a covariance). ``band``: the
     model's static friction band F_s (n,) N·m, for the contact delays counted from the band (:func:`contact_metrics`).
+    ``moving``: (T, n) bool, the joint samples in motion (|q̇_j| above ``filter.stiction_velocity``), for
+    ``coverage95_moving``, coverage95 over those alone: at rest the static friction band makes the interval span any
+    torque the joint can hold, so the samples at rest cover by construction (None: not given, or none in motion).
     """
     entry: dict[str, Any] = {"us_per_step": round(result.us_per_step, 2),
                              "estimates": int(result.valid.sum()), "rejected": result.rejected,
@@ -53,13 +64,16 @@ def observer_metrics(result: Any, truth: Any, stamp: np.ndarray, band: np.ndarra
         "joint_rmse": _rounded(joint_rmse), "joint_rmse_mean": _rounded(joint_rmse.mean()),
         "mean_abs": _rounded(magnitude.mean()), "p95": _rounded(np.percentile(magnitude, 95)),
         "max": _rounded(magnitude.max()), "temporal_std": _rounded(error.std(axis=0).mean()),
-        "coverage95": None, **dict.fromkeys(CALIBRATION_KEYS),
+        "coverage95": None, "coverage95_moving": None, **dict.fromkeys(CALIBRATION_KEYS),
         "contact": contact_metrics(stamp, result.contact, result.valid, truth.tau_ext, band),
         "collision": contact_metrics(stamp, result.collision, result.valid, truth.tau_ext, band),
     })
     if result.tau_std is not None:
         inside = magnitude <= 1.96 * result.tau_std[rows]
         entry["coverage95"] = _rounded(inside.mean())
+        in_motion = None if moving is None else moving[rows]
+        if in_motion is not None and in_motion.any():
+            entry["coverage95_moving"] = _rounded(inside[in_motion].mean())
         entry.update(calibration_metrics(error, result.tau_std[rows],
                                          None if result.mahalanobis is None else result.mahalanobis[rows]))
     if truth.wrench is not None:

@@ -9,8 +9,9 @@ augmented model (``train_on_diagnosis``, as ``benchmark --augment``), and replay
 (``evaluate_task``, the task ``kvark evaluate`` runs), and diagnose its payload scene against the augmented model
 (``flange_mass``: is the new load named a payload, of the drawn mass?). The figures are then pooled into
 distributions over robots × scenes ("cells"): median, 90th percentile (the value 90 % of the cells do better than)
-and worst, per arm class and pooled, and checked against ``acceptance_lines``. ``results.json`` and ``report.md``
-go into --out (``staged_directory``), each robot's bags, plant, models and log under ``robots/<arm>_<index>``.
+and worst, per arm class and pooled (coverage also over the joint samples in motion alone), and checked against
+``acceptance_lines``. ``results.json`` and ``report.md`` go into --out (``staged_directory``), each robot's bags,
+plant, models and log under ``robots/<arm>_<index>``.
 """
 from __future__ import annotations
 
@@ -48,7 +49,8 @@ SEED_STRIDE = 100000        # simulation seeds of robot i of population S: S·SE
 
 def _figures(metrics: Mapping[str, Any]) -> dict[str, Any]:
     """The figures kept per observer and scene."""
-    return {key: metrics.get(key) for key in ("joint_rmse_mean", "joint_rmse", "coverage95", "coverage95_per_joint")}
+    return {key: metrics.get(key) for key in ("joint_rmse_mean", "joint_rmse", "coverage95", "coverage95_moving",
+                                              "coverage95_per_joint")}
 
 
 def _pin_to_core() -> None:
@@ -196,6 +198,8 @@ def summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
         out[f"{observer} RMSE"] = distribution([_value(row, observer) for row in rows])
     for observer in ("kvark", "kvark_aug"):
         out[f"{observer} coverage95"] = distribution([_value(row, observer, "coverage95") for row in rows], False)
+        out[f"{observer} coverage95 moving"] = distribution(
+            [_value(row, observer, "coverage95_moving") for row in rows], False)
         out[f"{observer} coverage95 per joint"] = distribution(
             [v for row in rows for v in (_value(row, observer, "coverage95_per_joint") or [])], False)
     return out
@@ -203,6 +207,27 @@ def summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
 
 def _verdict(ok: bool) -> str:
     return "pass" if ok else "FAIL"
+
+
+def _pooled_coverage_line(label: str, pooled: Mapping[str, Any], moving: Mapping[str, Any]) -> str:
+    """Pooled coverage95 within ``COVERAGE_RANGE`` at the median and ≥ ``COVERAGE_WORST_DECILE`` at the worst decile.
+    Both lower bounds hold over every joint sample and over the samples in motion; the upper bound is read over the
+    samples in motion (cells without that figure: over every sample). At rest the static friction band spans any
+    torque the joint can hold, so those samples cover by construction: "no upper bound at rest", as for the per-joint
+    line (issue 28)."""
+    low, high = COVERAGE_RANGE
+    if not moving["count"]:
+        ok = low <= pooled["median"] <= high and pooled["p90"] >= COVERAGE_WORST_DECILE
+        return (f"- {label}: K-VARK coverage95 pooled: median {pooled['median']:.3f} ({low}-{high}), worst decile "
+                f"{pooled['p90']:.3f} (≥ {COVERAGE_WORST_DECILE}), worst {pooled['worst']:.3f} over "
+                f"{pooled['count']} cells: {_verdict(ok)}")
+    ok = (min(pooled["median"], moving["median"]) >= low and moving["median"] <= high
+          and min(pooled["p90"], moving["p90"]) >= COVERAGE_WORST_DECILE)
+    return (f"- {label}: K-VARK coverage95 pooled: median {pooled['median']:.3f} over every joint sample, "
+            f"{moving['median']:.3f} over those in motion ({low}-{high}; the upper bound in motion: at rest the "
+            f"static band is honest), worst decile {pooled['p90']:.3f} / {moving['p90']:.3f} "
+            f"(≥ {COVERAGE_WORST_DECILE}), worst {pooled['worst']:.3f} / {moving['worst']:.3f} over "
+            f"{pooled['count']} cells: {_verdict(ok)}")
 
 
 def acceptance_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[str]:
@@ -244,6 +269,7 @@ def acceptance_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[str]
                          f"cells (≤ {ORACLE_LIMIT}: {_verdict(median <= ORACLE_LIMIT)})")
         joint = distribution([v for row in rows for v in (fig(row, "kvark", "coverage95_per_joint") or [])], False)
         pooled = distribution([fig(row, "kvark", "coverage95") for row in rows], False)
+        moving = distribution([fig(row, "kvark", "coverage95_moving") for row in rows], False)
         if joint["count"]:
             ok = joint["median"] >= JOINT_COVERAGE_MEDIAN and joint["p90"] >= COVERAGE_WORST_DECILE
             lines.append(f"- {group}, {model}: K-VARK coverage95 per joint: median {joint['median']:.3f} "
@@ -260,11 +286,7 @@ def acceptance_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[str]
                          f"{len(pairs)} cells (short by at most {max(below, default=0.0):.4f}; at least min(kf's, "
                          f"{COVERAGE}) in {honest}): {_verdict(not below)}")
         if pooled["count"]:
-            low, high = COVERAGE_RANGE
-            ok = low <= pooled["median"] <= high and pooled["p90"] >= COVERAGE_WORST_DECILE
-            lines.append(f"- {group}, {model}: K-VARK coverage95 pooled: median {pooled['median']:.3f} "
-                         f"({low}-{high}), worst decile {pooled['p90']:.3f} (≥ {COVERAGE_WORST_DECILE}), worst "
-                         f"{pooled['worst']:.3f} over {pooled['count']} cells: {_verdict(ok)}")
+            lines.append(_pooled_coverage_line(f"{group}, {model}", pooled, moving))
     return lines
 
 

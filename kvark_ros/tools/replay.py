@@ -37,7 +37,7 @@ from kvark_ros.io import (BagError, BagWriter, RecordedRun, bool_messages, float
 from kvark_ros.io.alignment import add_trim_option, read_inputs
 from kvark_ros.tools.reference import align_reference, interpolate
 from kvark_ros.tools.truth_topics import missing_truth
-from kvark_ros.tools.metrics import mahalanobis_rows, observer_metrics, static_band
+from kvark_ros.tools.metrics import in_motion, mahalanobis_rows, observer_metrics, static_band
 from kvark_ros.tools.wrench_truth import sensed_wrench
 
 if TYPE_CHECKING:
@@ -307,9 +307,11 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
         log(f"[replay] {step}/{len(observers)} {name:<12} {result.us_per_step:7.1f} µs/step, "
             f"{result.valid.sum()} estimates")
     duration = float(inputs.stamp[-1] - inputs.stamp[0])
+    moving = in_motion(inputs.qd, config.filter.stiction_velocity)
     metrics = {"bag": str(bag), **bag_fields(inputs, truth, trained, warnings, decode_seconds, trim),
                "start_up_seconds": round(start_up, 3),
-               "observers": {r.name: observer_metrics(r, truth, inputs.stamp, static_band(trained)) for r in results}}
+               "observers": {r.name: observer_metrics(r, truth, inputs.stamp, static_band(trained), moving)
+                             for r in results}}
     if write_bag is None and duration > ESTIMATES_BAG_S:
         log(f"[replay] estimates bag not written: {duration:.0f} s of data, over {ESTIMATES_BAG_S:.0f} s (it would "
             f"hold every observer's outputs at every sample); pass --estimates-bag to write it")

@@ -19,7 +19,7 @@ from scipy.stats import chi2, norm
 from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.io.alignment import read_inputs
-from kvark_ros.tools.metrics import LEVELS, mahalanobis_squared, observer_metrics
+from kvark_ros.tools.metrics import LEVELS, in_motion, mahalanobis_squared, observer_metrics
 from kvark_ros.tools.plots import plot_reliability
 from kvark_ros.tools.real_benchmark import evaluate, report, split
 from kvark_ros.tools.replay import GroundTruth, ObserverRun, ground_truth, run_observer
@@ -52,10 +52,10 @@ def _run(name: str, error: np.ndarray, std: np.ndarray | None, cov: np.ndarray |
                        flags, mahalanobis=distance)
 
 
-def _metrics(run: ObserverRun) -> dict:
+def _metrics(run: ObserverRun, moving: np.ndarray | None = None) -> dict:
     count, n = run.tau_ext.shape
     truth = GroundTruth("synthetic", np.zeros((count, n)), np.zeros((count, 6)))
-    return observer_metrics(run, truth, 0.002 * np.arange(count))
+    return observer_metrics(run, truth, 0.002 * np.arange(count), moving=moving)
 
 
 @pytest.fixture(scope="module")
@@ -120,6 +120,22 @@ def test_calibration_figures_of_hand_made_errors():
     # At 50 % (±0.674 σ, χ²_2 1.386) only row 0 is inside on joint 0, rows 0 and 1 on joint 1, row 0 as a vector.
     assert entry["reliability"]["joint"][0] == pytest.approx(0.5, abs=1e-6)
     assert entry["reliability"]["vector"][0] == pytest.approx(1 / 3, abs=1e-6)
+    assert entry["coverage95_moving"] is None                          # no motion given
+
+
+def test_coverage_in_motion_counts_only_the_joint_samples_above_the_stiction_velocity():
+    """The hand-made errors above, σ = 1, with q̇ (rad/s) against a 0.01 rad/s stiction velocity: joint 0 moves in
+    rows 1 and 2 (both miss), joint 1 in rows 0 and 2 (inside, miss): 1 of 4 moving samples is inside, while every
+    sample gives 3 of 6. With no joint in motion the figure is None, not a share of nothing."""
+    error = np.array([[0.5, -0.5], [2.0, 0.0], [-3.0, 2.5]])
+    qd = np.array([[0.005, -0.2], [0.3, 0.0], [-0.5, 0.011]])
+    moving = in_motion(qd, 0.01)
+    assert moving.tolist() == [[False, True], [True, False], [True, True]]
+    entry = _metrics(_run("x", error, np.ones((3, 2)), np.eye(2)), moving)
+    assert entry["coverage95"] == pytest.approx(0.5, abs=1e-6)
+    assert entry["coverage95_moving"] == pytest.approx(0.25, abs=1e-6)
+    still = _metrics(_run("x", error, np.ones((3, 2)), np.eye(2)), np.zeros((3, 2), dtype=bool))
+    assert still["coverage95_moving"] is None and still["coverage95"] == pytest.approx(0.5, abs=1e-6)
 
 
 def test_no_covariance_means_no_calibration_figures(correlated):

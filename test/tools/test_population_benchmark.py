@@ -8,8 +8,10 @@ from kvark_ros.cli import main
 from kvark_ros.tools.population import aggregate, cells, distribution
 
 
-def _obs(rmse: float, coverage: float | None = None, per_joint: list[float] | None = None) -> dict:
-    return {"joint_rmse_mean": rmse, "joint_rmse": None, "coverage95": coverage, "coverage95_per_joint": per_joint}
+def _obs(rmse: float, coverage: float | None = None, per_joint: list[float] | None = None,
+         moving: float | None = None) -> dict:
+    return {"joint_rmse_mean": rmse, "joint_rmse": None, "coverage95": coverage, "coverage95_moving": moving,
+            "coverage95_per_joint": per_joint}
 
 
 def _robot(index: int, arm: str, scenes: dict) -> dict:
@@ -82,6 +84,26 @@ def test_cli_refuses_bad_population_options_in_one_line(extra, message, tmp_path
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("every, moving, verdict", [
+    ((0.99, 0.99, 0.97), (0.97, 0.975, 0.95), "pass"),     # over-covered at rest only: within 0.90-0.98 in motion
+    ((0.99, 0.99, 0.97), (0.985, 0.99, 0.95), "FAIL"),     # over-covered in motion too
+    ((0.95, 0.95, 0.95), (0.88, 0.89, 0.95), "FAIL"),      # the lower bound holds in motion as well
+    ((0.95, 0.95, 0.80), (0.95, 0.95, 0.95), "FAIL"),      # and at the worst decile over every sample
+])
+def test_the_pooled_coverage_upper_bound_is_read_in_motion_and_both_lower_bounds_everywhere(every, moving,
+                                                                                             verdict) -> None:
+    """Three cells: the median is the middle value, the worst decile the 10th percentile of three."""
+    scenes = {}
+    for name, all_samples, in_motion in zip(("payload", "contact", "collision"), every, moving):
+        scene = _scene(0.5, 1.0, 1.0, 0.9)
+        scene["nominal"]["kvark"].update(coverage95=all_samples, coverage95_moving=in_motion)
+        scenes[name] = scene
+    lines = aggregate([_robot(0, "ur5", scenes)])["pooled"]["acceptance"]
+    pooled = next(line for line in lines if line.startswith("- pooled, nominal: K-VARK coverage95 pooled"))
+    assert f"median {sorted(every)[1]:.3f} over every joint sample, {sorted(moving)[1]:.3f} over those in motion" \
+        in pooled and pooled.endswith(f": {verdict}")
 
 
 def test_augmented_lines_use_the_nominal_figures_where_the_diagnosis_did_not_run() -> None:

@@ -71,9 +71,8 @@ def observer_metrics(result: Any, truth: Any, stamp: np.ndarray, band: np.ndarra
     if result.tau_std is not None:
         inside = magnitude <= 1.96 * result.tau_std[rows]
         entry["coverage95"] = _rounded(inside.mean())
-        in_motion = None if moving is None else moving[rows]
-        if in_motion is not None and in_motion.any():
-            entry["coverage95_moving"] = _rounded(inside[in_motion].mean())
+        if moving is not None and moving[rows].any():
+            entry["coverage95_moving"] = _rounded(inside[moving[rows]].mean())
         entry.update(calibration_metrics(error, result.tau_std[rows],
                                          None if result.mahalanobis is None else result.mahalanobis[rows]))
     if truth.wrench is not None:

@@ -277,15 +277,14 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
         """The windowed VB (``window_vb``) around the update (K2)-(K5) on (p, τ) with its Σ_d; ``twin``: p_k, u_k−1,
         μ_* and w_p for the window's twin."""
         window = self.window
-        sigma_d = window.predict(h, window.twin_tau if window.twin else self.tau, window.twin_b if window.twin
-                                 else self.b, window.twin_c if window.twin else self.c)
+        sigma_d = window.predict(h, self.tau, self.b, self.c)          # the twin starts as the filter (step)
         self._update(p_pred, tau_pred, a, b, c, nu, R, sigma_d, h)     # eqs. 42-45 on (p, τ)
         if window.twin:
-            w_k1, w_k2 = window.twin_step(h, *twin, self.q_tau * h, R)
-            self.Sigma_d = window.update(h, nu, self._last_s, w_k1, w_k2, window.twin_tau, window.twin_b, window.twin_c)
-            return
-        k1 = (a + self._last_q[0]) / self._last_s
-        self.Sigma_d = window.update(h, nu, self._last_s, k1, self._last_k2, self.tau, self.b, self.c)
+            k1, k2 = window.twin_step(h, *twin, self.q_tau * h, R)
+            tau, b, c = window.twin_tau, window.twin_b, window.twin_c
+        else:
+            k1, k2, tau, b, c = (a + self._last_q[0]) / self._last_s, self._last_k2, self.tau, self.b, self.c
+        self.Sigma_d = window.update(h, nu, self._last_s, k1, k2, tau, b, c)
 
 
 def reference_of(observer: KVARKMomentumFilter) -> ReferenceMomentumFilter:

@@ -164,7 +164,8 @@ def contact_metrics(stamp: np.ndarray, flag: np.ndarray, valid: np.ndarray, trut
     ``band`` (n,) N·m, the static friction band F_s (docs/method.md §4.11): a joint at rest holds any torque within
     ±F_s, so a push is visible only once it exceeds that. ``detection_delay_from_band`` (s) is counted from the
     first sample of each detected contact where some joint's true |τ_ext| exceeds max(F_s, CONTACT_TORQUE) (0 when
-    the flag rose earlier); ``within_band_onsets`` counts the contacts that never exceed it.
+    the flag rose earlier); ``within_band_onsets`` counts the contacts that never exceed it, ``missed_beyond_band``
+    those that do and are never flagged.
     """
     rows = valid & np.isfinite(truth_tau).all(axis=1)
     stamp, flag, touching = stamp[rows], flag[rows], (np.abs(truth_tau[rows]) > CONTACT_TORQUE).any(axis=1)
@@ -172,7 +173,7 @@ def contact_metrics(stamp: np.ndarray, flag: np.ndarray, valid: np.ndarray, trut
     free = ~touching & (stamp - last_touch > SETTLE)
     beyond = None if band is None else (np.abs(truth_tau[rows]) > np.maximum(band, CONTACT_TORQUE)).any(axis=1)
     delays, band_delays = [], []
-    missed = within_band = 0
+    missed = within_band = missed_beyond = 0
     for onset in np.flatnonzero(touching[1:] & ~touching[:-1]) + 1:
         ends = np.flatnonzero(~touching[onset:])
         end = onset + (ends[0] if len(ends) else len(touching) - onset)
@@ -187,10 +188,12 @@ def contact_metrics(stamp: np.ndarray, flag: np.ndarray, valid: np.ndarray, trut
                 within_band += 1
             elif len(flagged):
                 band_delays.append(max(float(stamp[onset + flagged[0]] - stamp[onset + visible[0]]), 0.0))
+            else:
+                missed_beyond += 1
     band_figures = {} if band is None else {
         "detection_delay_from_band": _rounded(np.array(band_delays)) if band_delays else None,
-        "within_band_onsets": within_band}
-    return {**band_figures,"false_contact_share": _rounded(flag[free].mean()) if free.any() else None,
+        "within_band_onsets": within_band, "missed_beyond_band": missed_beyond}
+    return {**band_figures, "false_contact_share": _rounded(flag[free].mean()) if free.any() else None,
             "contact_free_samples": int(free.sum()),
             "onsets": len(delays) + missed, "missed_onsets": missed,
             "detection_delay": _rounded(np.array(delays)) if delays else None,

@@ -146,17 +146,19 @@ def test_contact_delay_counts_from_the_moment_the_push_exceeds_the_static_band()
     """A push ramping 0 → 4 N·m on joint 1 over 1 s (4 N·m/s) against a static band of 1.5 N·m on that joint: it is
     contact from 0.5 N·m (t = 0.125 s after the start of the ramp) but a joint at rest can hold it until it exceeds
     1.5 N·m (t = 0.375 s). The flag rising at 0.45 s is 0.325 s after the onset and 0.075 s after the band; a second
-    push of 1.0 N·m never leaves the band and is counted apart. Stamps every 5 ms: delays exact to 5 ms."""
-    stamp = np.arange(0.0, 4.0, 0.005)
+    push of 1.0 N·m never leaves the band and is counted apart; a third of 3.0 N·m leaves it and is never flagged,
+    a miss that counts. Stamps every 5 ms: delays exact to 5 ms."""
+    stamp = np.arange(0.0, 5.0, 0.005)
     truth = np.zeros((len(stamp), 7))
     ramp = (stamp >= 0.0) & (stamp < 1.0)
     truth[ramp, 0] = 4.0 * stamp[ramp]
     truth[(stamp >= 2.0) & (stamp < 3.0), 0] = 1.0
+    truth[(stamp >= 3.5) & (stamp < 4.0), 0] = 3.0
     flag = (stamp >= 0.45) & (stamp < 1.0)
     band = np.array([1.5, 2.0, 2.0, 2.0, 1.0, 1.0, 1.0])
     figures = contact_metrics(stamp, flag, np.ones(len(stamp), dtype=bool), truth, band)
-    assert figures["onsets"] == 2 and figures["missed_onsets"] == 1
+    assert figures["onsets"] == 3 and figures["missed_onsets"] == 2
     assert figures["detection_delay"] == pytest.approx([0.45 - 0.13], abs=0.0051)
     assert figures["detection_delay_from_band"] == pytest.approx([0.45 - 0.38], abs=0.0051)
-    assert figures["within_band_onsets"] == 1
+    assert figures["within_band_onsets"] == 1 and figures["missed_beyond_band"] == 1
     assert "detection_delay_from_band" not in contact_metrics(stamp, flag, np.ones(len(stamp), dtype=bool), truth)

@@ -32,6 +32,29 @@ def prior_hits(term: Term, theta: np.ndarray, priors: Priors) -> np.ndarray:
     return low | high
 
 
+def prior_use(term: Term, theta: np.ndarray, priors: Priors) -> float | None:
+    """The largest share of its prior's bound any of a term's parameters θ uses, |θ| / bound (1: at the bound; above
+    1: outside the prior), for the report and the population's check that no effect lies outside its prior without a
+    warning; None for a term without a finite prior bound. The physical bounds (θ ≥ 0, the flange link's mass > 0)
+    are not the prior's."""
+    lo, hi = term.bounds(priors)
+    if EFFECTS_BY_NAME[term.name].nonnegative or term.name == "payload":
+        lo = np.full_like(lo, -np.inf)
+    upper = np.isfinite(hi) & (hi > 0.0) & (theta > 0.0)
+    lower = np.isfinite(lo) & (lo < 0.0) & (theta < 0.0)
+    shares = np.concatenate([theta[upper] / hi[upper], theta[lower] / lo[lower]])
+    bounded = (np.isfinite(hi) & (hi > 0.0)) | (np.isfinite(lo) & (lo < 0.0))
+    if not bounded.any():
+        return None
+    return float(shares.max()) if shares.size else 0.0
+
+
+def prior_fields(term: Term, theta: np.ndarray, priors: Priors) -> dict:
+    """``diagnosis.json``'s per-effect fields against its prior: ``prior_use`` (``prior_use``) and ``at_prior_bound``
+    (any parameter at a bound, ``prior_hits``: each such parameter is a warning)."""
+    return {"prior_use": prior_use(term, theta, priors), "at_prior_bound": bool(prior_hits(term, theta, priors).any())}
+
+
 def at_bounds(term: Term, theta: np.ndarray, priors: Priors) -> np.ndarray:
     """Per joint of a per-joint or coupled term (one value for a body term): whether any of its parameters sits at a
     bound of its prior."""

@@ -66,14 +66,8 @@ from kvark_ros.gap.effects import (
     theta_split,
     variants,
 )
-from kvark_ros.gap.admissible import (
-    bad_bodies,
-    beyond_priors,
-    consistent,
-    inadmissible,
-    saturated_joints,
-    without_saturated,
-)
+from kvark_ros.gap.admissible import (bad_bodies, beyond_priors, consistent, inadmissible, prior_fields,
+                                      saturated_joints, without_saturated)
 from kvark_ros.gap.diagnosis_report import Diagnosis, write_outputs
 from kvark_ros.gap.fitting import Fitter
 from kvark_ros.gap.priors import FLAGS, MEASUREMENT_WIDTHS, UNITS, robot_priors
@@ -84,6 +78,7 @@ from kvark_ros.gap.plausibility import (
     flange_mass_regrouping,
     look_alikes,
     plausibility_warnings,
+    prior_summary,
     raw_gap,
 )
 from kvark_ros.io.alignment import add_sample_options, load_recordings
@@ -411,7 +406,7 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
         if term.name == "payload":
             params.update(flange_change(fitter.flange, fitter.flange_map, term.full_theta(th)))
         result_effects.append({"name": term.name, "joints": [int(j) for j in joints], "parameters": params,
-                               "ci95": ci, "gap_reduction": info["gap_reduction"],
+                               "ci95": ci, **prior_fields(term, th, priors), "gap_reduction": info["gap_reduction"],
                                "held_out_rmse_before": info["held_out_rmse_before"],
                                "held_out_rmse_after": info["held_out_rmse_after"]})
         thetas.append(th)
@@ -486,8 +481,8 @@ def train_on_diagnosis(config: EstimatorConfig, robot: RobotModel, segments: Seq
                        log: Callable[[str], None] = print) -> tuple[TrainedModel, dict]:
     """Diagnose ``segments`` on ``robot`` (the nominal model) within the priors of ``config``'s torque measurement,
     as ``kvark diagnose`` does; write the outputs to ``out/diagnosis``, train on the model augmented with what was
-    named and save it to ``out/model_augmented``. Returns the trained model and a summary: the effects and the mean
-    held-out gap before/after (N·m)."""
+    named and save it to ``out/model_augmented``. Returns the trained model and a summary: the effects, the mean
+    held-out gap before/after (N·m) and the effects against their priors (``plausibility.prior_summary``)."""
     diagnosis = diagnose(robot, segments, log=log, priors=Priors(torque_measurement=config.torque_measurement))
     for path in write_outputs(diagnosis, robot, out / "diagnosis", config.robot):
         log(f"[diagnose] wrote {path}")
@@ -497,7 +492,8 @@ def train_on_diagnosis(config: EstimatorConfig, robot: RobotModel, segments: Seq
     save_model(out / "model_augmented", trained)
     return trained, {"effects": list(augmentation.effect_names),
                      "gap_before": diagnosis.result["gap_before"]["joint_rmse_mean"],
-                     "gap_after": diagnosis.result["gap_after"]["joint_rmse_mean"]}
+                     "gap_after": diagnosis.result["gap_after"]["joint_rmse_mean"],
+                     "priors": prior_summary(diagnosis.result)}
 
 
 def add_parser(subparsers: SubParsers) -> None:

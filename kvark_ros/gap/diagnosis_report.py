@@ -72,8 +72,10 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
                          f"{'' if width is None else f' ± {width:.3f}'} kg (95 %; flange link "
                          f"{eff['parameters']['flange_link_mass_urdf']:.3f} → "
                          f"{eff['parameters']['flange_link_mass_total']:.3f} kg)")
+        use = eff.get("prior_use")
         lines.append(f"- **{eff['name']}** on joints {[robot.joint_names[j] for j in eff['joints']]}: "
-                     f"held-out gap of those joints −{eff['gap_reduction']:.0%}")
+                     f"held-out gap of those joints −{eff['gap_reduction']:.0%}"
+                     + ("" if use is None else f"; uses {use:.0%} of its prior (the largest |value| / bound)"))
         lines.append(f"  - parameters: `{json.dumps(eff['parameters'])}`")
         lines.append(f"  - 95 % half-widths (least squares with the residuals' correlation in time; a payload's mass "
                      f"also carries the drive-gain prior; docs/method.md §8.3): `{json.dumps(eff['ci95'])}`")

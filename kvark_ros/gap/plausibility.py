@@ -3,6 +3,7 @@
 * ``plausibility_warnings``: every parameter at a bound of its prior (``gap.priors``) is named with the flag that
   widens it, because the data wanted more than physics allows and another effect is probably hiding behind it;
   ``beyond_prior_warning``: an effect dropped at its prior that the data want beyond it (``admissible.beyond_priors``);
+  ``prior_summary``: how much of its prior each named effect uses, and whether one outside it went unwarned;
 * ``flange_change``: the payload effect as what it is physically: an unmodelled tool or payload (the flange
   link heavier than in the URDF) or a tool mismatch (lighter: the URDF's tool is not what the robot carries);
 * ``flange_mass_regrouping``: whether the data can tell the flange link's mass from the link before it (on a
@@ -13,7 +14,7 @@
 """
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from scipy.signal import savgol_filter
@@ -27,6 +28,7 @@ from kvark_ros.gap.priors import FAR_BEYOND, UNITS, suggested_flag
 
 REGROUPED = 1e-6         # relative residual below which the flange mass is a combination of the previous link's
 RAW_QDD_WINDOW = 0.05    # s: q̈ from a 50 ms Savitzky-Golay derivative of q̇; τ_m not filtered at all
+OUTSIDE_TOLERANCE = 1e-6  # a share of its prior above 1 + this is outside it (bounded fits reach 1 + round-off)
 
 
 def _value(name: str, theta: np.ndarray) -> str:
@@ -112,6 +114,22 @@ def beyond_prior_warning(record: dict, priors: Priors, joint_names: Sequence[str
             + (f"Weaker look-alikes, beyond their priors too: {weaker}. " if weaker else "")
             + "Not accepted, and no look-alike outside its own prior stands in for it: if the value is physical, "
             f"pass {_flag(name, wanted, bound)}; otherwise an effect the library lacks is seen through it")
+
+
+def prior_summary(result: Mapping[str, Any]) -> dict[str, Any]:
+    """A diagnosis's named effects against their priors (``diagnosis.json``'s ``effects``, ``warnings`` and
+    ``beyond_priors``): how many, the largest share of its prior any uses (``admissible.prior_use``), those at a
+    bound (each a warning), the explanations wanted beyond a prior (each a warning) and the effects outside their
+    prior with no warning (``unwarned``: the acceptance of issue 28 wants none; a fit within its bounds leaves a
+    share above 1 by round-off only, ``OUTSIDE_TOLERANCE``)."""
+    effects = result["effects"]
+    uses = [effect["prior_use"] for effect in effects if effect.get("prior_use") is not None]
+    outside = [effect for effect in effects if (effect.get("prior_use") or 0.0) > 1.0 + OUTSIDE_TOLERANCE]
+    return {"effects": len(effects), "largest_prior_use": max(uses, default=None),
+            "at_bound": [effect["name"] for effect in effects if effect.get("at_prior_bound")],
+            "beyond_priors": len(result.get("beyond_priors", [])), "warnings": len(result["warnings"]),
+            "unwarned": [effect["name"] for effect in outside
+                         if not (effect.get("at_prior_bound") and result["warnings"])]}
 
 
 def flange_change(flange: np.ndarray, flange_map: np.ndarray, theta: np.ndarray) -> dict:

@@ -18,6 +18,7 @@ from kvark_ros.core.estimation.augmentation import load_augmentation, parse_augm
 from kvark_ros.gap.diagnose import diagnose, write_outputs  # noqa: E402
 from kvark_ros.gap.diagnosis_report import augmentation  # noqa: E402
 from kvark_ros.gap.effects import EFFECT_NAMES, Priors, augmentation_gap  # noqa: E402
+from kvark_ros.gap.plausibility import OUTSIDE_TOLERANCE, prior_summary  # noqa: E402
 from kvark_ros.io import write_run  # noqa: E402
 from kvark_ros.io.alignment import estimator_inputs  # noqa: E402
 from kvark_ros.sim.scenarios import simulate  # noqa: E402
@@ -128,6 +129,21 @@ def test_armature_named_with_joints_and_values(diagnoses):
     np.testing.assert_allclose(eff["parameters"]["armature"], PANDA_ARMATURE, rtol=0.1)
     assert [e["name"] for e in diag.result["effects"]] == ["armature"]
     _shrinks(diag)
+
+
+def test_every_named_effect_states_its_share_of_the_prior_and_none_lies_outside_unwarned(diagnoses):
+    """The fit is bounded by the priors, so no named effect uses more than its whole prior (1 + round-off); an effect
+    at a bound carries a warning. The armature's share is its largest value over its per-joint bound."""
+    for key, diag in diagnoses.items():
+        for effect in diag.result["effects"]:
+            use = effect["prior_use"]
+            assert use is None or 0.0 <= use <= 1.0 + OUTSIDE_TOLERANCE, (key, effect["name"], use)
+            assert not effect["at_prior_bound"] or diag.result["warnings"], (key, effect["name"])
+        assert prior_summary(diag.result)["unwarned"] == []
+    diag = diagnoses[("panda", "armature")]
+    armature = _effect(diag, "armature")
+    bound = np.array(diag.result["priors"]["effects"]["armature"]["bound"])
+    assert armature["prior_use"] == pytest.approx(np.max(np.array(armature["parameters"]["armature"]) / bound))
 
 
 @pytest.mark.parametrize("robot", ["panda", "ur5"])

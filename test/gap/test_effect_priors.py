@@ -15,7 +15,7 @@ from kvark_ros.core.effect_catalog import CHANGES_BETWEEN_RUNS, EFFECT_NAMES
 from kvark_ros.core.estimation.augmentation import parse_augmentation
 from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.core.estimation.robot_model import RobotModel
-from kvark_ros.gap.admissible import at_bounds
+from kvark_ros.gap.admissible import at_bounds, prior_use
 from kvark_ros.gap.admissible import consistent
 from kvark_ros.gap.diagnose import HOLDOUT, _prior_scale, body_fitter, diagnose, payload_first, prepare
 from kvark_ros.gap.effects import Priors, Term
@@ -84,6 +84,28 @@ def test_a_value_at_its_prior_is_a_warning_naming_the_flag(ur5):
     assert names[0] in warnings[0] and "--prior armature=" in warnings[0] and names[3] not in warnings[0]
     assert names[2] in warnings[1] and "--max-gain-error" in warnings[1]
     assert list(at_bounds(armature, at_bound, priors)) == [True, False]
+
+
+def test_prior_use_is_the_largest_share_of_its_bound_and_ignores_the_physical_ones(ur5):
+    """|θ| / bound per parameter, the largest: a symmetric prior counts either sign, a non-negative effect's lower
+    bound 0 and a payload's positive-mass bound are physics, not its prior, and a term without a finite prior has
+    none."""
+    priors = robot_priors(ur5, Priors())
+    ripple = Term("position_ripple", (1, 4))        # bounds 3.0 (joint 2) and 0.56 (joint 5) N·m, sin and cos
+    assert prior_use(ripple, np.array([0.3, -1.5, 0.0, 0.14]), priors) == pytest.approx(0.5)
+    assert prior_use(ripple, np.array([0.3, 0.0, -0.56, 0.0]), priors) == pytest.approx(1.0)
+    armature = Term("armature", (0,))
+    assert prior_use(armature, np.array([0.0]), priors) == 0.0
+    assert prior_use(armature, np.array([2.0 * priors.limits["armature"][0]]), priors) == pytest.approx(2.0)
+    payload = Term("payload", tuple(range(6)))
+    mass_bound = priors.limits["payload"][0]
+    theta = np.zeros(10)
+    theta[0], theta[1:4] = -0.5, 5.0                # a lighter tool (its lower bound is the link's mass, physics)
+    assert prior_use(payload, theta, priors) == 0.0
+    theta[0] = 0.25 * mass_bound
+    assert prior_use(payload, theta, priors) == pytest.approx(0.25)
+    unbounded = robot_priors(ur5, Priors(scale=(("armature", np.inf),)))
+    assert prior_use(armature, np.array([1.0]), unbounded) is None
 
 
 def test_the_prior_flag_is_parsed_and_refuses_gains_and_typos():

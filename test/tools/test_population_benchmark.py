@@ -152,3 +152,61 @@ def test_the_coverage_line_compares_kvark_with_kf_cell_by_cell() -> None:
     lines = aggregate(robots)["ur5"]["acceptance"]
     assert ("- ur5, nominal: K-VARK coverage95 at least kf's in 1 of 3 cells (short by at most 0.0300; at least "
             "min(kf's, 0.95) in 2): FAIL") in lines
+
+
+def _pushes(scene: dict, observer: str, delays: list[float], missed: int = 0) -> None:
+    """Give ``observer``'s nominal entry the contact flag's delays (s) from the static band and its missed pushes."""
+    scene["nominal"][observer]["contact"] = {"onsets": len(delays) + missed, "detection_delay_from_band": delays,
+                                             "within_band_onsets": 0, "missed_beyond_band": missed}
+
+
+@pytest.mark.parametrize("kvark, kvark_missed, median, verdict", [
+    ([0.030, 0.050, 0.070], 0, 50, "pass"),    # no later than kf's 60 ms
+    ([0.030, 0.070, 0.090], 0, 70, "FAIL"),    # later than kf's
+    ([0.030, 0.050], 1, 40, "FAIL"),           # earlier, but one push beyond the band never flagged (kf flags all)
+])
+def test_the_contact_delay_line_counts_from_the_band_and_holds_kvark_to_kf(kvark, kvark_missed, median,
+                                                                           verdict) -> None:
+    """kf flags its three pushes 40, 60 and 80 ms after they exceed the static band. K-VARK passes when its median is
+    no later and it misses no push kf flags; the median is over every onset of the cells, in ms."""
+    contact, collision = _scene(0.5, 1.0, 1.0, 0.6), _scene(0.5, 1.0, 1.0, 0.6)
+    _pushes(contact, "kvark", kvark[:1])
+    _pushes(collision, "kvark", kvark[1:], kvark_missed)
+    _pushes(contact, "kf", [0.040])
+    _pushes(collision, "kf", [0.060, 0.080])
+    lines = aggregate([_robot(0, "ur5", {"contact": contact, "collision": collision})])["ur5"]["acceptance"]
+    line = next(line for line in lines if "contact flag" in line)
+    assert line.startswith(f"- ur5, nominal: contact flag after the push exceeds the static band: K-VARK median "
+                           f"{median} ms")
+    assert f"over 3 pushes, {kvark_missed} never flagged; kf median 60 ms" in line and line.endswith(f": {verdict})")
+    quiet = aggregate([_robot(0, "ur5", {"payload": _scene(0.5, 1.0, 1.0, 0.6)})])["ur5"]["acceptance"]
+    assert not any("contact flag" in line for line in quiet)     # no push beyond the band: nothing to judge
+
+
+def _diagnosed(robot: dict, *summaries: dict) -> dict:
+    free, payload = summaries
+    robot["augmentation"] = {"priors": free, "flange_mass": {**_weighed(robot, 1.0, 1.0)["augmentation"][
+        "flange_mass"], "priors": payload}}
+    return robot
+
+
+def _summary(effects: int, largest: float, at_bound: list[str], unwarned: list[str], beyond: int = 0) -> dict:
+    return {"effects": effects, "largest_prior_use": largest, "at_bound": at_bound, "beyond_priors": beyond,
+            "warnings": len(at_bound) + beyond, "unwarned": unwarned}
+
+
+def test_the_prior_line_fails_only_on_an_effect_outside_its_prior_without_a_warning() -> None:
+    """Two robots, each a free-motion and a payload diagnosis: the counts add up over the four, the largest share is
+    the largest of any; effects at a bound or wanted beyond it are warned and pass; one unwarned effect fails."""
+    scene = {"payload": _scene(0.5, 1.0, 1.0, 0.6)}
+    robots = [_diagnosed(_robot(0, "ur5", scene), _summary(4, 0.62, [], []), _summary(1, 0.10, [], [])),
+              _diagnosed(_robot(1, "ur10", scene), _summary(5, 0.99, ["armature"], [], beyond=2),
+                         _summary(2, 0.30, [], []))]
+    line = next(line for line in aggregate(robots)["pooled"]["acceptance"] if "against their priors" in line)
+    assert line == ("- pooled: effects against their priors over 4 diagnoses (free motion, and the payload scene "
+                    "against the calibrated model): 12 named, the largest using 99% of its prior, 1 at a bound (each a "
+                    "warning); 2 explanations wanted beyond a prior (each a warning); outside a prior without a "
+                    "warning: none: pass")
+    robots[1]["augmentation"]["flange_mass"]["priors"] = _summary(2, 1.4, [], ["torque_offset"])
+    line = next(line for line in aggregate(robots)["pooled"]["acceptance"] if "against their priors" in line)
+    assert "the largest using 140% of its prior" in line and line.endswith("without a warning: torque_offset: FAIL")

@@ -19,12 +19,19 @@ MAX_PRIOR_HALVINGS = 12  # a body's prior σ may shrink 4096-fold toward the URD
 BOUND_SHARE = 0.01       # a parameter within 1 % of its prior's range from a bound is "at the bound"
 
 
-def prior_hits(term: Term, theta: np.ndarray, priors: Priors) -> np.ndarray:
-    """Which of a term's parameters θ sit at a bound of its prior (within ``BOUND_SHARE`` of the range); the
-    physical bounds (θ ≥ 0, the flange link's mass > 0) are not the prior's."""
+def _prior_bounds(term: Term, priors: Priors) -> tuple[np.ndarray, np.ndarray]:
+    """A term's bounds of its prior alone: ``Term.bounds`` without the physical ones (θ ≥ 0, the flange link's mass
+    > 0), which are not the prior's."""
     lo, hi = term.bounds(priors)
     if EFFECTS_BY_NAME[term.name].nonnegative or term.name == "payload":
         lo = np.full_like(lo, -np.inf)
+    return lo, hi
+
+
+def prior_hits(term: Term, theta: np.ndarray, priors: Priors) -> np.ndarray:
+    """Which of a term's parameters θ sit at a bound of its prior (``_prior_bounds``; within ``BOUND_SHARE`` of the
+    range)."""
+    lo, hi = _prior_bounds(term, priors)
     finite_lo, finite_hi = np.isfinite(lo), np.isfinite(hi)
     span = np.where(finite_lo & finite_hi, hi - np.where(finite_lo, lo, 0.0), np.where(finite_hi, np.abs(hi), 0.0))
     low = finite_lo & (theta <= np.where(finite_lo, lo, 0.0) + BOUND_SHARE * span)
@@ -35,11 +42,8 @@ def prior_hits(term: Term, theta: np.ndarray, priors: Priors) -> np.ndarray:
 def prior_use(term: Term, theta: np.ndarray, priors: Priors) -> float | None:
     """The largest share of its prior's bound any of a term's parameters θ uses, |θ| / bound (1: at the bound; above
     1: outside the prior), for the report and the population's check that no effect lies outside its prior without a
-    warning; None for a term without a finite prior bound. The physical bounds (θ ≥ 0, the flange link's mass > 0)
-    are not the prior's."""
-    lo, hi = term.bounds(priors)
-    if EFFECTS_BY_NAME[term.name].nonnegative or term.name == "payload":
-        lo = np.full_like(lo, -np.inf)
+    warning (``_prior_bounds``); None for a term without a finite prior bound."""
+    lo, hi = _prior_bounds(term, priors)
     upper = np.isfinite(hi) & (hi > 0.0) & (theta > 0.0)
     lower = np.isfinite(lo) & (lo < 0.0) & (theta < 0.0)
     shares = np.concatenate([theta[upper] / hi[upper], theta[lower] / lo[lower]])
@@ -50,8 +54,8 @@ def prior_use(term: Term, theta: np.ndarray, priors: Priors) -> float | None:
 
 
 def prior_fields(term: Term, theta: np.ndarray, priors: Priors) -> dict:
-    """``diagnosis.json``'s per-effect fields against its prior: ``prior_use`` (``prior_use``) and ``at_prior_bound``
-    (any parameter at a bound, ``prior_hits``: each such parameter is a warning)."""
+    """``diagnosis.json``'s per-effect fields against its prior: ``prior_use`` and ``at_prior_bound`` (any parameter at
+    a bound, ``prior_hits``: each such parameter is a warning)."""
     return {"prior_use": prior_use(term, theta, priors), "at_prior_bound": bool(prior_hits(term, theta, priors).any())}
 
 

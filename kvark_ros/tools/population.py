@@ -296,10 +296,11 @@ def acceptance_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[str]
     return lines
 
 
-def _delays(rows: Sequence[Mapping[str, Any]], observer: str) -> tuple[list[float], int]:
+def _delays(rows: Sequence[Mapping[str, Any]], observer: str, suffix: str) -> tuple[list[float], int]:
     """``observer``'s contact-flag delays (ms) counted from the moment each push exceeds the static band, over the
-    cells' onsets, and how many such pushes it never flagged."""
-    entries = [(row.get(observer) or {}).get("contact") or {} for row in rows]
+    cells' onsets, and how many such pushes it never flagged; on the model of ``suffix``, the nominal figures where a
+    cell has none (its diagnosis did not run), as ``acceptance_lines`` reads them."""
+    entries = [(row.get(observer + suffix) or row.get(observer) or {}).get("contact") or {} for row in rows]
     delays = [1e3 * delay for entry in entries for delay in (entry.get("detection_delay_from_band") or [])]
     return delays, sum(entry.get("missed_beyond_band") or 0 for entry in entries)
 
@@ -312,7 +313,12 @@ def contact_delay_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[s
     and missing no more pushes (issue 17's "contact detection delay not worse")."""
     lines = []
     for model, suffix in (("nominal", ""), ("augmented", "_aug")):
-        (kvark, kvark_missed), (kf, kf_missed) = (_delays(rows, observer + suffix) for observer in ("kvark", "kf"))
+        diagnosed = sum(row.get(f"kvark{suffix}") is not None for row in rows)
+        if not diagnosed:
+            continue
+        if diagnosed < len(rows):
+            model = f"{model} ({diagnosed} of {len(rows)} cells diagnosed, nominal elsewhere)"
+        (kvark, kvark_missed), (kf, kf_missed) = (_delays(rows, observer, suffix) for observer in ("kvark", "kf"))
         pushes = len(kvark) + kvark_missed
         if not pushes:
             continue

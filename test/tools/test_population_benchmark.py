@@ -154,9 +154,10 @@ def test_the_coverage_line_compares_kvark_with_kf_cell_by_cell() -> None:
             "min(kf's, 0.95) in 2): FAIL") in lines
 
 
-def _pushes(scene: dict, observer: str, delays: list[float], missed: int = 0) -> None:
-    """Give ``observer``'s nominal entry the contact flag's delays (s) from the static band and its missed pushes."""
-    scene["nominal"][observer]["contact"] = {"onsets": len(delays) + missed, "detection_delay_from_band": delays,
+def _pushes(scene: dict, observer: str, delays: list[float], missed: int = 0, model: str = "nominal") -> None:
+    """Give ``observer``'s entry on ``model`` the contact flag's delays (s) from the static band and its missed
+    pushes."""
+    scene[model][observer]["contact"] = {"onsets": len(delays) + missed, "detection_delay_from_band": delays,
                                              "within_band_onsets": 0, "missed_beyond_band": missed}
 
 
@@ -181,6 +182,24 @@ def test_the_contact_delay_line_counts_from_the_band_and_holds_kvark_to_kf(kvark
     assert f"over 3 pushes, {kvark_missed} never flagged; kf median 60 ms" in line and line.endswith(f": {verdict})")
     quiet = aggregate([_robot(0, "ur5", {"payload": _scene(0.5, 1.0, 1.0, 0.6)})])["ur5"]["acceptance"]
     assert not any("contact flag" in line for line in quiet)     # no push beyond the band: nothing to judge
+
+
+def test_the_contact_delay_line_reads_the_nominal_figures_where_a_diagnosis_did_not_run() -> None:
+    """Robot 0 was diagnosed: on its augmented model K-VARK flags 30 ms after the band, kf 60. Robot 1's diagnosis
+    failed, so its augmented cell is its nominal one: K-VARK 100 ms, kf 50. The augmented line pools both, as the other
+    acceptance lines do, and says so: K-VARK's median 65 ms against kf's 55, FAIL (robot 0 alone would pass)."""
+    diagnosed, failed = _scene(0.5, 1.0, 1.0, 0.6, kvark_aug=0.5), _scene(0.5, 1.0, 1.0, 0.6)
+    for model in ("nominal", "augmented"):
+        _pushes(diagnosed, "kvark", [0.030], model=model)
+        _pushes(diagnosed, "kf", [0.060], model=model)
+    _pushes(failed, "kvark", [0.100])
+    _pushes(failed, "kf", [0.050])
+    robots = [_robot(0, "ur5", {"contact": diagnosed}), _robot(1, "ur5", {"contact": failed})]
+    lines = aggregate(robots)["ur5"]["acceptance"]
+    line = next(line for line in lines if "augmented" in line and "contact flag" in line)
+    assert line.startswith("- ur5, augmented (1 of 2 cells diagnosed, nominal elsewhere): contact flag after the push "
+                           "exceeds the static band: K-VARK median 65 ms")
+    assert "over 2 pushes, 0 never flagged; kf median 55 ms" in line and line.endswith(": FAIL)")
 
 
 def _diagnosed(robot: dict, *summaries: dict) -> dict:

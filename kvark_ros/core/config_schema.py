@@ -26,6 +26,7 @@ VB_WINDOW_SOURCES = ("estimate", "prior")
 MEASUREMENTS = ("momentum", "difference")
 TORQUE_SOURCES = ("effort_commands", "effort_commands_joint_state", "joint_states_effort")
 OUTPUT_QOS = ("reliable", "sensor_data")
+CONTACT_TEST_COVARIANCES = ("residual", "reported")
 # How a joint's τ_m is measured; sets how wide ``kvark diagnose``'s priors are (gap/priors.py, docs/method.md §8).
 TORQUE_MEASUREMENTS = ("link_torque_sensor", "motor_current", "commanded_effort")
 # The VB readings each form of the filter implements (docs/method.md §4.5-4.6).
@@ -220,6 +221,11 @@ KEYS: tuple[Key, ...] = (
          "interval (no debounce)", runtime=True, **_unit(0.0, 1000.0, low_open=True)),
     _key("contact.debounce", "number", 0.02, "s the contact test must hold before the flag changes",
          runtime=True, **_unit(0.0, 1.0)),
+    _key("contact.test_covariance", "choice", "residual",
+         "S of the contact test: residual = the filter's P plus the residual model's variance σ²_r(q̇) (docs/method.md "
+         "§7.2), reported = K-VARK's reported covariance, the spread contact-free training data show τ̂ (interval "
+         "factors, floor and static band, §4.13; other observers keep residual); the collision test keeps residual",
+         runtime=True, choices=CONTACT_TEST_COVARIANCES),
     _key("output.qos", "choice", "reliable",
          "QoS of the node's estimate topics: reliable, or sensor_data (best effort)", choices=OUTPUT_QOS),
     _key("tare.duration", "number", 1.0, "s of rest ~/tare averages τ_ext over", runtime=True,

@@ -130,6 +130,11 @@ class ContactSettings:
     debounce: float = 0.02
     """s the contact test must hold before the flag changes. Allowed: a number in [0.0, 1.0]. Can be changed while the
     node runs."""
+    test_covariance: Literal["residual", "reported"] = "residual"
+    """S of the contact test: residual = the filter's P plus the residual model's variance σ²_r(q̇) (docs/method.md
+    §7.2), reported = K-VARK's reported covariance, the spread contact-free training data show τ̂ (interval factors,
+    floor and static band, §4.13; other observers keep residual); the collision test keeps residual. Allowed: one of
+    residual, reported. Can be changed while the node runs."""
 
 
 @dataclass(frozen=True)

@@ -212,6 +212,26 @@ def test_end_effector_axes_the_static_friction_band_and_the_interval_factors(con
     _assert_equal_to_rounding(_run(reference, inputs["panda_collision"]), _run(kernel, inputs["panda_collision"]))
 
 
+def test_the_contact_test_on_the_reported_covariance(config, trained, inputs):
+    """contact.test_covariance reported (band, factors and floor as above): the kernel equals the reference, its
+    contact statistic is τ̂ᵀ Σ⁻¹ τ̂ with Σ the reported Cov τ̂ of the same sample (docs/method.md §7.2; diagonal here),
+    and the collision test keeps P + σ²_r: its excess equals the one of a run on the residual S."""
+    reported = replace(config, contact=replace(config.contact, test_covariance="reported"))
+    banded = replace(trained, stiction=StictionBand(np.full(7, 2.0)),
+                     interval_scale=IntervalScale(FACTORS, np.linspace(0.0, 0.05, 7)))
+    data = inputs["panda_collision"]
+    reference, kernel = _pair(reported, banded)
+    runs = _run(reference, data), _run(kernel, data)
+    _assert_equal_to_rounding(*runs)
+    last = next(e for e in reversed(runs[1]) if e is not None)
+    assert kernel.contact.statistic == pytest.approx(float(last.tau_ext @ np.linalg.solve(last.tau_cov, last.tau_ext)),
+                                                     rel=1e-12)
+    residual = Estimator.from_config(config, banded, "kvark")
+    _run(residual, data)
+    assert residual.collision.excess == kernel.collision.excess
+    assert residual.contact.statistic < kernel.contact.statistic       # σ²_r widens S: the residual test is slower
+
+
 def test_tare_at_rest(config, trained):
     """A tare averaged at rest (test_tare's scenario: τ_m = g(q0) − BIAS) runs the kernel in two calls around the
     averaging; the estimates before, during and after it and the offset equal the reference's."""

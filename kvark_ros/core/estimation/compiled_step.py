@@ -92,8 +92,8 @@ class CompiledStep:
         self._compile()
 
     def configure(self, config: EstimatorConfig, z: float) -> None:
-        """Take the run-time keys wrench.*, filter.stiction_velocity, filter.interval_calibration and
-        filter.interval_floor, and the collision's z."""
+        """Take the run-time keys wrench.*, filter.stiction_velocity, filter.interval_calibration,
+        filter.interval_floor and contact.test_covariance, and the collision's z."""
         velocity, wrench = config.filter.stiction_velocity, config.wrench
         self.params[:] = pack(EstimatorParam, {
             EstimatorParam.DAMPING: wrench.damping, EstimatorParam.PRIOR_FORCE: wrench.prior_force,
@@ -101,9 +101,10 @@ class CompiledStep:
             EstimatorParam.Z: z})
         self._floored = config.filter.interval_floor == "kf"
         self._set_floor()
+        scaled = self._scale is not None and config.filter.interval_calibration == "trained"
         self._flags = ((Flag.STICTION if self._band is not None and velocity != 0.0 else 0)
-                       | (Flag.SCALED if self._scale is not None and config.filter.interval_calibration == "trained"
-                          else 0)
+                       | (Flag.SCALED if scaled else 0)
+                       | (Flag.TEST_REPORTED if scaled and config.contact.test_covariance == "reported" else 0)
                        | (Flag.END_EFFECTOR if config.wrench.frame != "base" else 0)
                        | (Flag.AUGMENTED if self._augmentation is not None else 0))
 

@@ -14,6 +14,10 @@ uncertainty at the current velocity (the KMP variance of eq. 23, calibrated at t
 to 95 % held-out coverage): ``S = P + diag(σ²_r(q̇))``. On the same runs that gave no false
 positives in free motion while table contact (~15 N) and a 20-40 N push were flagged.
 
+With ``contact.test_covariance: reported`` the estimator passes K-VARK's reported covariance as S instead
+(its calibrated interval, docs/method.md §7.2): on arms whose slow filter passes little of σ²_r the test on
+P + σ²_r waits for far larger pushes. The collision test keeps P + σ²_r.
+
 Fallback for observers without a covariance (``momentum``, ``eso``) and, in general, for
 observers that do not subtract a learned residual: their τ̂ also carries the friction the
 residual model would have removed, so the residual's mean enters as uncertainty too:

@@ -148,7 +148,8 @@ class Estimator:
     The contact test (``contact``, a ``ContactDetector``) runs on every estimate with
     S = P + diag σ²_r(q̇) from the observer's own residual model; an observer without one falls back
     to the trained KMP with its mean as uncertainty too (docs/method.md §7), which needs ``trained``;
-    the collision test (``collision``, a ``CollisionDetector``) uses the same S.
+    with ``contact.test_covariance: reported`` and calibrated intervals, its S is the reported covariance
+    (§7.2). The collision test (``collision``, a ``CollisionDetector``) uses P + diag σ²_r(q̇) in either case.
     """
 
     def __init__(self, config: EstimatorConfig, robot: RobotModel, observer: Observer,
@@ -353,6 +354,7 @@ class Estimator:
         tau_ext = self.tare.apply(stamp, qd, tau_ext)         # τ̂ − offset (a non-finite τ̂ resets below)
         sticking = self._sticking_variance(qd)
         widened = reported = tau_cov                           # P of the tests, P the estimate reports
+        scaled = False
         if tau_cov is not None:
             if sticking is not None:
                 widened = tau_cov.copy()                       # the observer's own P stays as it is
@@ -365,6 +367,7 @@ class Estimator:
                                                       self.contact.flag)
                 if sticking is not None:
                     reported.flat[:: n + 1] += sticking
+                scaled = True
         wrench, wrench_cov, weak, rotation, jacobian = self._solve_wrench(q, tau_ext, reported)
         total = tau_ext.sum() + (0.0 if tau_cov is None else reported.sum() + wrench_cov.sum())
         if not np.isfinite(total):
@@ -372,7 +375,9 @@ class Estimator:
         self.status = Status.OK
         self.counts[Status.OK] += 1
         covariance = self._test_covariance(q, qd, g, widened, sticking)
-        contact = self.contact.flag if covariance is None else self.contact.update(stamp, tau_ext, covariance)
+        # contact.test_covariance reported: the contact test's S is the reported Cov τ̂ (docs/method.md §7.2)
+        tested = reported if scaled and self.config.contact.test_covariance == "reported" else covariance
+        contact = self.contact.flag if tested is None else self.contact.update(stamp, tau_ext, tested)
         if sticking is not None and covariance is not None:
             # The collision flag is a safety stop with its own absolute threshold: it keeps the unwidened σ, so a
             # hit on a sticking joint is not delayed until it exceeds the static band (docs/method.md §4.11).

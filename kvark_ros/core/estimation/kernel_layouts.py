@@ -151,6 +151,7 @@ class Flag(Bits):
     SCALED = enum.auto()                # report P scaled by the interval factors (§4.13)
     END_EFFECTOR = enum.auto()          # the wrench in the ee axes
     AUGMENTED = enum.auto()             # subtract τ_aug from u (§2.2)
+    TEST_REPORTED = enum.auto()         # the contact test's S: the reported covariance, not P + σ²_r (§7.2)
 
 
 class Outcome(Bits):

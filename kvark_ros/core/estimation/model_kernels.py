@@ -17,7 +17,7 @@ from kvark_ros.core.estimation.step_kernel import jit
 
 # sha256 of core/estimation/kernel_layouts.py (its docstring): update it with the file,
 # so numba recompiles these kernels.
-LAYOUTS_DIGEST = "cab639908df2725df8cd74b912546dadde650aaeca188f6e00d9aa7c8faf2411"
+LAYOUTS_DIGEST = "6dfb8facd529e5115e5c74eda29203f927c8ad4cdc256ff677ddb516edc27f18"
 
 
 @jit

@@ -37,7 +37,7 @@ from kvark_ros.core.estimation.kernel_layouts import (CONST_ROWS, PARAMS, VEC_RO
 
 # sha256 of core/estimation/kernel_layouts.py (module docstring): update it with the file,
 # so numba recompiles the kernels.
-LAYOUTS_DIGEST = "cab639908df2725df8cd74b912546dadde650aaeca188f6e00d9aa7c8faf2411"
+LAYOUTS_DIGEST = "6dfb8facd529e5115e5c74eda29203f927c8ad4cdc256ff677ddb516edc27f18"
 
 # Samples of evidence from which an accepted jump counts as a step; on fewer its Var τ̂ also spans an impulse (§4.7).
 ONSET_EVIDENCE = 2
@@ -522,8 +522,9 @@ def estimate_step(flags: int, dt: float, qd: np.ndarray, tau_m: np.ndarray, grav
     ``constants``, ``options``), POST (the rest, into ``tau``, ``tau_cov``, ``wrench``, ``wrench_cov``), and the
     settings TARED (subtract ``offset``), STICTION (widen by the band in ``rows[Row.BAND]``), SCALED (report P scaled
     by ``rows[Row.SCALE]``, at least ``rows[Row.FLOOR]``), END_EFFECTOR (wrench in the axes of ``rotation``),
-    AUGMENTED (subtract ``rows[Row.AUG]`` = τ_aug). ``jac``: J (6, n) in base axes; ``params``: δ, the wrench prior,
-    v_s, z (``EstimatorParam``). Returns (code: ``Outcome`` bits WEAK | DIVERGED | SINGULAR, the contact statistic
+    AUGMENTED (subtract ``rows[Row.AUG]`` = τ_aug), TEST_REPORTED (the contact test's S is the reported
+    covariance, not P + σ²_r). ``jac``: J (6, n) in base axes; ``params``: δ, the wrench prior, v_s, z
+    (``EstimatorParam``). Returns (code: ``Outcome`` bits WEAK | DIVERGED | SINGULAR, the contact statistic
     (NaN: S not positive definite), the collision excess (NaN: not finite)); with WEAK or SINGULAR, F and Σ_F are not
     final.
     """
@@ -559,8 +560,9 @@ def estimate_step(flags: int, dt: float, qd: np.ndarray, tau_m: np.ndarray, grav
             variance[j] = scaled + sticking                                     # + σ²_s
         tau_cov[j, j] = variance[j]
         s_jj = widened + residual_var[j]                                        # S = P + diag σ²_r (§7.2)
-        if s_jj > 0.0:
-            scaled = tau[j] / math.sqrt(s_jj)                                   # L⁻¹ τ̂, L = diag(√S_jj)
+        s_test = variance[j] if flags & Flag.TEST_REPORTED else s_jj           # or the reported Cov τ̂ (§7.2)
+        if s_test > 0.0:
+            scaled = tau[j] / math.sqrt(s_test)                                 # L⁻¹ τ̂, L = diag(√S_jj)
             statistic += scaled * scaled                                        # d² = τ̂ᵀ S⁻¹ τ̂ (§7.1)
         else:
             definite = False

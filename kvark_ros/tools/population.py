@@ -236,6 +236,17 @@ def _pooled_coverage_line(label: str, pooled: Mapping[str, Any], moving: Mapping
             f"{pooled['count']} cells: {_verdict(ok)}")
 
 
+def _model_label(rows: Sequence[Mapping[str, Any]], model: str, suffix: str) -> str | None:
+    """How a line names the model of ``suffix`` over ``rows``: ``model``, with how many cells were diagnosed where a
+    diagnosis did not run on every robot (those read the nominal figures); None where it ran on none."""
+    diagnosed = sum(row.get(f"kvark{suffix}") is not None for row in rows)
+    if not diagnosed:
+        return None
+    if diagnosed == len(rows):
+        return model
+    return f"{model} ({diagnosed} of {len(rows)} cells diagnosed, nominal elsewhere)"
+
+
 def acceptance_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[str]:
     """The acceptance checks over ``rows`` (robot × scene cells of ``group``), as pass/FAIL lines with the figures,
     on the nominal model and on the augmented one (kvark_aug against kf_aug and momentum_aug, the nominal figures
@@ -245,12 +256,11 @@ def acceptance_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[str]
     qualifying = [row for row in rows if None not in (_value(row, "oracle"), _value(row, "kf"))
                   and _value(row, "oracle") <= ORACLE_QUALIFIES * _value(row, "kf")]
     for model, suffix in (("nominal", ""), ("augmented", "_aug")):
-        diagnosed = sum(row.get(f"kvark{suffix}") is not None for row in rows)
-        if not diagnosed:
+        label = _model_label(rows, model, suffix)
+        if label is None:
             lines.append(f"- {group}, {model}: no cell (the diagnosis did not run)")
             continue
-        if diagnosed < len(rows):
-            model = f"{model} ({diagnosed} of {len(rows)} cells diagnosed, nominal elsewhere)"
+        model = label
 
         def fig(row: Mapping[str, Any], observer: str, key: str = "joint_rmse_mean") -> Any:
             entry = row.get(observer + suffix) or row.get(observer)
@@ -313,11 +323,10 @@ def contact_delay_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[s
     and missing no more pushes (issue 17's "contact detection delay not worse")."""
     lines = []
     for model, suffix in (("nominal", ""), ("augmented", "_aug")):
-        diagnosed = sum(row.get(f"kvark{suffix}") is not None for row in rows)
-        if not diagnosed:
+        label = _model_label(rows, model, suffix)
+        if label is None:
             continue
-        if diagnosed < len(rows):
-            model = f"{model} ({diagnosed} of {len(rows)} cells diagnosed, nominal elsewhere)"
+        model = label
         (kvark, kvark_missed), (kf, kf_missed) = (_delays(rows, observer, suffix) for observer in ("kvark", "kf"))
         pushes = len(kvark) + kvark_missed
         if not pushes:

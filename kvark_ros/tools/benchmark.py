@@ -23,7 +23,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
-from kvark_ros.core.config import EstimatorConfig, default_config_path, load_config, parse_observers
+from kvark_ros.core.config import ConfigError, EstimatorConfig, default_config_path, load_config, parse_observers
 from kvark_ros.core.files import check_output, staged_directory, write_text_atomically
 from kvark_ros.core.estimation.model_store import TrainedModel, save_model
 from kvark_ros.core.estimation.robot_model import RobotModel
@@ -190,6 +190,11 @@ def add_parser(subparsers: SubParsers) -> None:
                            "a stop; default 0 0)")
     real.add_argument("--rate", type=float, default=500.0,
                       help="keep every k-th sample for about this rate, Hz (default 500; 0: as recorded)")
+    real.add_argument("--pushes", type=float, default=0.0, metavar="NEWTONS",
+                      help="also judge the held-out part with known pushes of this force superposed on it (τ_m less "
+                           "Jᵀ F: a stiffly position-controlled arm; 1 s holds, one every 3 s, along the wrench axes "
+                           "in turn), augmented model: τ_ext RMSE during and after the pushes, contact delay "
+                           "(default 0: off; e.g. 40)")
     real.add_argument("--no-baselines", action="store_true", help="skip the learned baselines (faster)")
     real.add_argument("--no-plots", action="store_true", help="skip the figures of the held-out part (report.md only)")
     parser.set_defaults(run=run)
@@ -201,6 +206,9 @@ def run(args: argparse.Namespace) -> int:
         check_arguments(args)
         check_output(args.out, args.force)
         return run_population(args)
+    if args.pushes and not args.real:
+        raise ConfigError(f"--pushes {args.pushes:g} superposes pushes on a real recording: it needs --real BAG (the "
+                          "simulated scenes have their own contacts)")
     args.robot = args.robot or "panda"
     check_output(args.out, args.force, (args.real, args.config))
     if args.real:

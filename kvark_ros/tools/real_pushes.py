@@ -38,14 +38,13 @@ DIRECTIONS = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0],
 class Pushes:
     """The pushed recording: ``inputs`` (τ_m less τ_ext), ``truth`` (τ_ext (T, n) N·m, wrench (T, 6) N, N·m),
     ``active`` (T,) bool where a push acts, ``after`` (T,) bool the free motion from ``SETTLE`` s after a push ends
-    to the next, ``starts`` the push start times (s from the first sample) and ``force`` N."""
+    to the next, and ``starts`` the push start times (s from the first sample)."""
 
     inputs: EstimatorInputs
     truth: GroundTruth
     active: np.ndarray
     after: np.ndarray
     starts: list[float]
-    force: float
 
 
 def push_profile(time: np.ndarray, force: float) -> tuple[np.ndarray, list[float]]:
@@ -77,7 +76,7 @@ def pushed(robot: RobotModel, frame: str, inputs: EstimatorInputs, force: float)
         end = start + 2 * RAMP + HOLD
         after |= (time >= end + SETTLE) & (time < start + PERIOD)
     truth = GroundTruth(f"pushes of {force:g} N superposed on the recording", tau_ext, wrench)
-    return Pushes(replace(inputs, tau_m=inputs.tau_m - tau_ext), truth, active, after, starts, float(force))
+    return Pushes(replace(inputs, tau_m=inputs.tau_m - tau_ext), truth, active, after, starts)
 
 
 def phase_rmse(result: Any, pushes: Pushes) -> dict[str, float | None]:

@@ -209,7 +209,7 @@ def _run_real(args: argparse.Namespace, out: Path) -> int:
     write_text_atomically(out / "report.md", report(results))
     if not args.no_plots:      # matplotlib only when drawing, as replay
         from kvark_ros.tools.real_figures import write_real_figures
-        write_real_figures(out, config, held, {"nominal": nominal, "augmented": augmented}, results)
+        write_real_figures(out, config, held, {"nominal": nominal, "augmented": augmented}, results, pushes)
     log(report(results))
     log(f"[benchmark] wrote {args.out}/results.json and {args.out}/report.md in "
         f"{(time.perf_counter() - started) / 60:.1f} min")

@@ -3,8 +3,10 @@
 The true external torque there is zero, so an estimate is its own error: per model (nominal, augmented) one figure
 of the false τ_ext over time (the zero truth black on top, the observer with the lowest false τ_ext drawn thick
 above K-VARK and the baselines, the 95 % bands of those two), the reliability diagram (coverage of zero) and the
-RMSE bars, in the observers' colours of every other figure. The observers drawn are stepped once more over the
-held-out part (the benchmark keeps only their metrics; the same inputs give the same estimates).
+RMSE bars, in the observers' colours of every other figure. With ``--pushes``, one more figure: τ_ext over the
+held-out part with the pushes superposed, their true τ_ext black on top, a zoomed inset at each push's onset
+(augmented model). The observers drawn are stepped once more (the benchmark keeps only their metrics; the same
+inputs give the same estimates).
 """
 from __future__ import annotations
 
@@ -18,7 +20,8 @@ from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.core.estimation.model_store import TrainedModel
 from kvark_ros.core.files import write_text_atomically
 from kvark_ros.tools.colours import colour_word
-from kvark_ros.tools.plots import plot_error_bars, plot_reliability, plot_time_histories
+from kvark_ros.tools.plots import contact_onsets, plot_error_bars, plot_reliability, plot_time_histories
+from kvark_ros.tools.real_pushes import Pushes
 from kvark_ros.tools.replay import run_observer
 from kvark_ros.tools.report import PLOTTED_OBSERVERS, best_observer
 
@@ -41,16 +44,39 @@ def _model_figures(out: Path, config: EstimatorConfig, held: EstimatorInputs, tr
     return figures + ([reliability] if reliability is not None else []), best, drawn
 
 
+def _push_figure(out: Path, config: EstimatorConfig, pushes: Pushes, trained: TrainedModel,
+                 observers: Mapping[str, Mapping[str, Any]]) -> tuple[Path, str | None, list[str]]:
+    """τ_ext with the pushes superposed against their truth (module docstring): the path, the best observer and the
+    observers drawn."""
+    best = best_observer(observers)
+    drawn = [name for name in observers if name in PLOTTED_OBSERVERS or name == best]
+    truth, stamp = pushes.truth.tau_ext, pushes.inputs.stamp
+    runs = {name: run_observer(config, trained, pushes.inputs, name, truth_tau=truth) for name in drawn}
+    return plot_time_histories(
+        stamp, truth, {name: np.where(r.valid[:, None], r.tau_ext, np.nan) for name, r in runs.items()},
+        config.joint_names, "τ_ext (N·m)", out / "joint_torques_pushes.png",
+        stddev={name: r.tau_std for name, r in runs.items() if r.tau_std is not None}, best=best,
+        onsets=contact_onsets(stamp, truth),
+        title="External joint torque on the held-out part with known pushes superposed, augmented model"), best, drawn
+
+
 def write_real_figures(out: Path, config: EstimatorConfig, held: EstimatorInputs, models: Mapping[str, TrainedModel],
-                       results: Mapping[str, Any]) -> list[Path]:
+                       results: Mapping[str, Any], pushes: Pushes | None = None) -> list[Path]:
     """The figures of every model in ``models`` (label → trained model; ``results[label]``: its observers'
-    metrics) under ``out``, and a section naming them appended to ``out``/report.md."""
+    metrics) and of the ``pushes`` (``results["pushes"]``, augmented model) under ``out``, and a section naming them
+    appended to ``out``/report.md."""
     figures, notes = [], []
     for label, trained in models.items():
         paths, best, drawn = _model_figures(out, config, held, trained, label, results[label])
         figures += paths
         notes.append(f"{label}: {', '.join(f'{name} ({colour_word(name)})' for name in drawn)}"
                      + (f"; lowest false τ_ext RMSE {best}, drawn thickest on top" if best else ""))
+    if pushes is not None:
+        path, best, drawn = _push_figure(out, config, pushes, models["augmented"], results["pushes"]["observers"])
+        figures.append(path)
+        notes.append(f"with the pushes (`joint_torques_pushes.png`, their true τ_ext black on top): "
+                     f"{', '.join(f'{name} ({colour_word(name)})' for name in drawn)}"
+                     + (f"; lowest τ_ext RMSE {best}, drawn thickest on top" if best else ""))
     text = ["", "## Figures", "",
             "The held-out part, where the true external torque is zero (black, on top): every estimate is error. "
             "Each observer has the same colour in every figure; 95 % bands (±1.96 σ) of the best observer and "

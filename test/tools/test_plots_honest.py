@@ -26,6 +26,7 @@ from kvark_ros.tools.metrics import CONTACT_TORQUE, observer_metrics, wrench_met
 from kvark_ros.tools.plots import (BAND_LABEL, BAND_ROOM, CLIPPED_NOTE, UNOBSERVED_LABEL, plot_reliability,
                                    plot_time_histories, plot_training)
 from kvark_ros.tools.real_figures import write_real_figures
+from kvark_ros.tools.real_pushes import pushed
 from kvark_ros.tools.replay import GroundTruth, ground_truth, run_observer, zero_truth
 from kvark_ros.tools.report import NOT_AT_SENSOR, metrics_table, write_replay_report, wrench_truth_note
 from kvark_ros.tools.wrench_truth import explained_by_wrench
@@ -252,6 +253,29 @@ def test_real_benchmark_figures_draw_the_zero_truth_and_the_best_on_top_and_are_
     args = build_parser("benchmark").parse_args(["benchmark", "--real", "bag", "--out", "out", "--no-plots"])
     assert args.no_plots
 
+
+def test_the_push_figure_draws_the_pushes_true_torque_on_top_and_is_named_in_the_report(config, tmp_path, saved):
+    trained = load_model(MODEL, config.joint_names)
+    inputs = read_inputs(EXCITATION, config)[1]
+    held = inputs.take(np.arange(len(inputs) // 2, len(inputs)))           # 4 s: one push
+    pushes = pushed(RobotModel.from_config(config), config.wrench.frame, held, 20.0)
+    truth = pushes.truth
+    entries = {name: observer_metrics(run_observer(config, trained, pushes.inputs, name, truth_tau=truth.tau_ext),
+                                      truth, held.stamp) for name in ("kvark", "kf")}
+    zero = zero_truth(held, "contact-free")
+    free = {name: observer_metrics(run_observer(config, trained, held, name, truth_tau=zero.tau_ext), zero, held.stamp)
+            for name in ("kvark", "kf")}
+    (tmp_path / "report.md").write_text("# Real recording\n")
+    figures = write_real_figures(tmp_path, config, held, {"augmented": trained},
+                                 {"augmented": free, "pushes": {"observers": entries}}, pushes)
+    assert figures[-1].name == "joint_torques_pushes.png" and figures[-1].is_file()
+    for ax, joint_truth in zip(_panels(saved[-1]), truth.tau_ext.T):
+        lines = {line.get_label().removesuffix(" (lowest RMSE)"): line for line in ax.get_lines()
+                 if not line.get_label().startswith("_")}
+        np.testing.assert_array_equal(lines["ground truth"].get_ydata(), joint_truth)   # the pushes' τ_ext, not 0
+        assert lines["ground truth"].get_zorder() > max(line.get_zorder() for name, line in lines.items()
+                                                        if name != "ground truth")
+    assert "![joint_torques_pushes](joint_torques_pushes.png)" in (tmp_path / "report.md").read_text()
 
 def test_replay_report_without_a_wrench_truth_note_when_every_sample_is_observed(tmp_path, saved):
     stamp = np.arange(500) / 500.0

@@ -11,7 +11,7 @@ inputs give the same estimates).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -26,38 +26,30 @@ from kvark_ros.tools.replay import run_observer
 from kvark_ros.tools.report import PLOTTED_OBSERVERS, best_observer
 
 
+def _torque_figure(path: Path, config: EstimatorConfig, inputs: EstimatorInputs, truth: np.ndarray,
+                   trained: TrainedModel, observers: Mapping[str, Mapping[str, Any]], ylabel: str, title: str,
+                   onsets: Sequence[float] = ()) -> tuple[Path, str | None, list[str]]:
+    """τ_ext over ``inputs`` against ``truth`` (T, n) N·m, the best of ``observers`` (their metrics) and the usual few
+    stepped once more and drawn (module docstring): the path, the best observer and the observers drawn."""
+    best = best_observer(observers)
+    drawn = [name for name in observers if name in PLOTTED_OBSERVERS or name == best]
+    runs = {name: run_observer(config, trained, inputs, name, truth_tau=truth) for name in drawn}
+    return plot_time_histories(
+        inputs.stamp, truth, {name: np.where(r.valid[:, None], r.tau_ext, np.nan) for name, r in runs.items()},
+        config.joint_names, ylabel, path, stddev={name: r.tau_std for name, r in runs.items() if r.tau_std is not None},
+        best=best, onsets=onsets, title=title), best, drawn
+
+
 def _model_figures(out: Path, config: EstimatorConfig, held: EstimatorInputs, trained: TrainedModel, label: str,
                    observers: Mapping[str, Mapping[str, Any]]) -> tuple[list[Path], str | None, list[str]]:
     """One model's figures (module docstring): the paths, the best observer and the observers drawn over time."""
-    best = best_observer(observers)
-    drawn = [name for name in observers if name in PLOTTED_OBSERVERS or name == best]
-    zero = np.zeros(held.q.shape)
-    runs = {name: run_observer(config, trained, held, name, truth_tau=zero) for name in drawn}
-    figures = [plot_time_histories(
-        held.stamp, zero, {name: np.where(r.valid[:, None], r.tau_ext, np.nan) for name, r in runs.items()},
-        config.joint_names, "false τ_ext (N·m)", out / f"joint_torques_{label}.png",
-        stddev={name: r.tau_std for name, r in runs.items() if r.tau_std is not None}, best=best,
-        title=f"External joint torque on the held-out part, {label} model (truth: zero, contact-free)")]
-    figures.append(plot_error_bars(observers, "joint_rmse_mean", "false τ_ext RMSE (N·m)",
-                                   out / f"joint_rmse_{label}.png"))
+    torques, best, drawn = _torque_figure(
+        out / f"joint_torques_{label}.png", config, held, np.zeros(held.q.shape), trained, observers,
+        "false τ_ext (N·m)", f"External joint torque on the held-out part, {label} model (truth: zero, contact-free)")
+    figures = [torques, plot_error_bars(observers, "joint_rmse_mean", "false τ_ext RMSE (N·m)",
+                                        out / f"joint_rmse_{label}.png")]
     reliability = plot_reliability(observers, out / f"reliability_{label}.png")
     return figures + ([reliability] if reliability is not None else []), best, drawn
-
-
-def _push_figure(out: Path, config: EstimatorConfig, pushes: Pushes, trained: TrainedModel,
-                 observers: Mapping[str, Mapping[str, Any]]) -> tuple[Path, str | None, list[str]]:
-    """τ_ext with the pushes superposed against their truth (module docstring): the path, the best observer and the
-    observers drawn."""
-    best = best_observer(observers)
-    drawn = [name for name in observers if name in PLOTTED_OBSERVERS or name == best]
-    truth, stamp = pushes.truth.tau_ext, pushes.inputs.stamp
-    runs = {name: run_observer(config, trained, pushes.inputs, name, truth_tau=truth) for name in drawn}
-    return plot_time_histories(
-        stamp, truth, {name: np.where(r.valid[:, None], r.tau_ext, np.nan) for name, r in runs.items()},
-        config.joint_names, "τ_ext (N·m)", out / "joint_torques_pushes.png",
-        stddev={name: r.tau_std for name, r in runs.items() if r.tau_std is not None}, best=best,
-        onsets=contact_onsets(stamp, truth),
-        title="External joint torque on the held-out part with known pushes superposed, augmented model"), best, drawn
 
 
 def write_real_figures(out: Path, config: EstimatorConfig, held: EstimatorInputs, models: Mapping[str, TrainedModel],
@@ -72,7 +64,12 @@ def write_real_figures(out: Path, config: EstimatorConfig, held: EstimatorInputs
         notes.append(f"{label}: {', '.join(f'{name} ({colour_word(name)})' for name in drawn)}"
                      + (f"; lowest false τ_ext RMSE {best}, drawn thickest on top" if best else ""))
     if pushes is not None:
-        path, best, drawn = _push_figure(out, config, pushes, models["augmented"], results["pushes"]["observers"])
+        truth = pushes.truth.tau_ext
+        path, best, drawn = _torque_figure(
+            out / "joint_torques_pushes.png", config, pushes.inputs, truth, models["augmented"],
+            results["pushes"]["observers"], "τ_ext (N·m)",
+            "External joint torque on the held-out part with known pushes superposed, augmented model",
+            contact_onsets(pushes.inputs.stamp, truth))
         figures.append(path)
         notes.append(f"with the pushes (`joint_torques_pushes.png`, their true τ_ext black on top): "
                      f"{', '.join(f'{name} ({colour_word(name)})' for name in drawn)}"

@@ -197,7 +197,7 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
         if self.onset is not None:                                      # part of the Σ_d adaptation
             jump = self.onset.step(nu, R, self._last_s, self._last_k2, dt)
             if jump is not None:
-                self._apply_jump(jump)
+                self._apply_jump(jump, dt)
         if variant.ewma:
             # eq. 31 with eq. 16's correction: E[ν²] = H P⁻ Hᵀ + R; bounded by the training R (Remark 2).
             # Weighted by w = (R/S)², ν²'s information on R relative to P⁻ = 0 (Var ν² = 2 S²), over w̄_k, the
@@ -213,9 +213,9 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
             self.nis_mean = np.minimum(np.maximum(updated, NIS_SCALE_BOUNDS[0]), NIS_SCALE_BOUNDS[1])
         return self.tau, np.diag(self.c)
 
-    def _apply_jump(self, jump: Jump) -> None:
+    def _apply_jump(self, jump: Jump, h: float) -> None:
         """Correct the state for the onset detector's accepted jumps: x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ Var Δ̂, and
-        P_ττ += e⁺_τ² · doubt."""
+        P_ττ += e⁺_τ² · doubt; then every joint's Σ_d at least q_c h (``_raise_to_contact``)."""
         joints, e_p, e_t, spread = jump.joints, jump.e_p, jump.e_t, jump.variance
         self.p_hat = self.p_hat.copy()
         self.tau = self.tau.copy()
@@ -224,6 +224,21 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
         self.a[joints] += e_p * e_p * spread
         self.b[joints] += e_p * e_t * spread
         self.c[joints] += e_t * e_t * (spread + jump.doubt)
+        self._raise_to_contact(h)
+
+    def _raise_to_contact(self, h: float) -> None:
+        """A contact: every joint's q̂ (window) or Σ_d (per-sample VB) at least q_c (h) (§4.7), the VB's statistics
+        set so its posterior (eq. 39, eqs. 39-40) is that value."""
+        window = self.window
+        if window is not None:
+            raised = window.q < self.contact_density
+            window.q = np.where(raised, self.contact_density, window.q)
+            window.scale = np.where(raised, window.q * (window.prior_dof + window.dof) - window.prior_dof * window.q0,
+                                    window.scale)
+            self.Sigma_d = window.q * h
+        elif self.variant.vb and self.Sigma_d is not None:
+            self.Sigma_d = np.maximum(self.Sigma_d, self.contact_density * h)
+            self.vb_scale = self.Sigma_d * (self.vb_dof - 2.0)
 
     def _update(self, p_pred, tau_pred, a, b, c, nu, R, sigma_d, h) -> np.ndarray:
         """Add the random walk's Q (K2) for per-step variance Σ_d and update (K3)-(K5); returns τ̂⁺."""
@@ -291,7 +306,8 @@ def reference_of(observer: KVARKMomentumFilter) -> ReferenceMomentumFilter:
     """The reference built with the arguments ``observer`` (a production momentum-form filter) was built with."""
     variant = next(name for name, value in VARIANTS.items() if value == observer.variant)
     return ReferenceMomentumFilter(variant, observer.residual, observer.tuning, observer.noise, observer.settings,
-                                   name=observer.name, sample_period=observer.sample_period)
+                                   name=observer.name, sample_period=observer.sample_period,
+                                   contact_density=observer.contact_density)
 
 
 def reference_observer(name: str, trained: TrainedModel, settings: FilterSettings,

@@ -203,13 +203,15 @@ def _random_walk_run(observer, n: int, h: float, density: float, R: float, steps
 
 
 def _window_filter(panda_config, n: int, q0: float, R: float, variant: str = "window", form: str = "reference",
-                   **settings):
-    """The momentum-form kvark filter in ``form`` (a key of ``MOMENTUM_FORMS``)."""
+                   contact_density: float | None = None, **settings):
+    """The momentum-form kvark filter in ``form`` (a key of ``MOMENTUM_FORMS``); ``contact_density`` q_c (default
+    q0: an onset raises nothing)."""
     tuning_ = FilterTuning(np.full(n, 5.0), np.full(n, 0.05), np.full(n, 0.02), np.full(n, 1e-4))
     noise = MomentumNoise(np.full(n, R), np.full(n, q0), np.full(n, 1e-8))
     config = replace(panda_config.filter, measurement="momentum", vb_variant=variant, vb_window_time=0.05,
                      vb_prior_dof=1.0, vb_memory=0.2, **settings)
-    return MOMENTUM_FORMS[form]("kvark", flat_residual(n, 1e-4), tuning_, noise, config)
+    return MOMENTUM_FORMS[form]("kvark", flat_residual(n, 1e-4), tuning_, noise, config,
+                                contact_density=None if contact_density is None else np.full(n, contact_density))
 
 
 @pytest.mark.parametrize("form", MOMENTUM_FORMS)
@@ -340,17 +342,19 @@ def test_the_twin_breaks_the_loop_by_which_misfit_holds_the_adapted_density(pand
     assert twin_rmse < 0.9 * rmse
 
 
-def _onset_filter(panda_config, n: int, threshold: float, form: str):
-    return _window_filter(panda_config, n, 0.05, 1e-6, form=form, onset_threshold=threshold, onset_window_time=0.02)
+def _onset_filter(panda_config, n: int, threshold: float, form: str, contact_density: float | None = None):
+    return _window_filter(panda_config, n, 0.05, 1e-6, form=form, contact_density=contact_density,
+                          onset_threshold=threshold, onset_window_time=0.02)
 
 
-def _one_joint_samples(observer, rng, torque, steps: int = 1100, h: float = 0.002, noise: float = 1e-3):
-    """Step a one-joint filter on p_k = p_k−1 + h τ(k), measured with white noise σ = ``noise`` N·m·s (u = 0, q̇ = 0);
-    yields its (τ̂, Cov τ̂) after each sample."""
-    p_true, p_prev, zero = np.zeros(1), np.zeros(1), np.zeros(1)
+def _joint_samples(observer, rng, torque, steps: int = 1100, h: float = 0.002, noise: float = 1e-3):
+    """Step a filter of n joints on p_k = p_k−1 + h τ(k), measured with white noise σ = ``noise`` N·m·s (u = 0,
+    q̇ = 0); yields its (τ̂, Cov τ̂) after each sample."""
+    n = observer.n
+    p_true, p_prev, zero = np.zeros(n), np.zeros(n), np.zeros(n)
     for k in range(steps):
         p_true = p_true + h * torque(k)
-        p = p_true + noise * rng.normal(0.0, 1.0, 1)
+        p = p_true + noise * rng.normal(0.0, 1.0, n)
         yield observer.step(h, zero, p, p_prev, zero)
         p_prev = p
 
@@ -400,6 +404,36 @@ def test_onset_detector_tracks_a_step_much_faster(panda_config, rng, form):
 
 
 @pytest.mark.parametrize("form", MOMENTUM_FORMS)
+def test_an_onset_raises_every_joint_to_the_contact_density(panda_config, rng, form):
+    """A push's onset and rise on joint 0 (a 5 N·m step, then 200 N·m/s for 0.1 s), joint 1 untouched; prior
+    q_0 = 0.05, momentum noise σ = 1e-3 N·m·s. With q_c = 2.0 the accepted onset raises q̂ of both joints to at least
+    q_c (§4.7: a contact loads every joint through Jᵀ F, the detector sees it on one), and the window forgets the
+    untouched joint's back towards q_0: 0.9 s after the ramp it is 0.077-0.097 (seeds 12345, 1-4), bound 0.2 (2×
+    margin). With q_c = q_0 (the rule off) the untouched joint stays at the prior."""
+    torque = [np.array([5.0 + min(k - 1000, 50) * 0.4 if k >= 1000 else 0.0, 0.0]) for k in range(1500)]
+    raised = {}
+    for q_c in (0.05, 2.0):
+        observer = _onset_filter(panda_config, 2, 60.0, form, contact_density=q_c)
+        q = np.array([observer.window.q.copy() for _ in _joint_samples(observer, rng, torque.__getitem__, steps=1500)])
+        assert observer.onset.alarms >= 1
+        raised[q_c] = q[1000:1010].max(axis=0), q[-1]
+    assert np.all(raised[2.0][0] >= 2.0)                                  # both joints, the untouched one too
+    assert raised[2.0][1][1] < 0.2                                       # forgotten back towards the prior
+    assert raised[0.05][0][1] <= 0.05 and raised[0.05][1][1] <= 0.05
+
+
+def test_the_contact_bandwidth_sets_the_least_density_after_an_onset(panda_config, panda_trained):
+    """``filter.onset_contact_bandwidth``: q_c is the random walk of that natural frequency (the training's rule);
+    0 leaves q_c at the prior's own q_τ, so an onset raises nothing."""
+    settings = replace(panda_config.filter, measurement="momentum", onset_contact_bandwidth=50.0)
+    observer = make_observer("kvark", panda_trained, settings)
+    expected = panda_trained.momentum_noise.with_bandwidth(50.0, panda_trained.sample_period).torque_density
+    assert np.allclose(observer.contact_density, expected) and np.all(expected > 5.0 * observer.q_tau)
+    off = make_observer("kvark", panda_trained, replace(settings, onset_contact_bandwidth=0.0))
+    assert np.array_equal(off.contact_density, off.q_tau)
+
+
+@pytest.mark.parametrize("form", MOMENTUM_FORMS)
 def test_onset_detector_stays_quiet_without_a_jump(panda_config, rng, form):
     """20 s of a slow random-walk τ_ext (the prior density) with momentum noise: no alarm."""
     n, h, q0, R = 7, 0.002, 0.05, 1e-6
@@ -420,7 +454,7 @@ def test_a_jump_seen_on_one_sample_keeps_the_impulse_open(panda_config, rng, for
     back): 0.331, lowest −1.86, two alarms. The bound 0.12 lies between 0.072 and 0.179."""
     observer = _onset_filter(panda_config, 1, 60.0, form)
     taus, variances = [], []
-    for tau, cov in _one_joint_samples(observer, rng, lambda k: 10.0 if k == 1000 else 0.0):
+    for tau, cov in _joint_samples(observer, rng, lambda k: 10.0 if k == 1000 else 0.0):
         taus.append(tau[0])
         variances.append(np.diag(cov)[0])
     assert observer.onset.alarms == 1 and taus[1000] > 9.0               # accepted on the impulse's sample only
@@ -457,5 +491,5 @@ def test_the_noise_estimate_keeps_its_level_through_a_jump(panda_config, rng, fo
     then trusted p 100× too much, and its P collapsed: a table contact flagged as a collision). Bound 0.5."""
     observer = _onset_filter(panda_config, 1, 60.0, form)
     ratios = [observer.R_adaptive[0] / observer.R[0]
-              for _ in _one_joint_samples(observer, rng, lambda k: 10.0 if k >= 1000 else 0.0)]
+              for _ in _joint_samples(observer, rng, lambda k: 10.0 if k >= 1000 else 0.0)]
     assert observer.onset.alarms >= 1 and min(ratios[1000:]) > 0.5

@@ -52,6 +52,7 @@ class Const(Layout):
     R_MIN = enum.auto()                 # the EWMA R_k's floor, R_FLOOR · R, (N·m·s)²
     Q_P = enum.auto()                   # q_p, the process noise density of p (eq. 30), N²·m²·s
     Q_TAU = enum.auto()                 # q_τ, the random-walk density of τ from training (eq. 32), N²·m²/s
+    Q_CONTACT = enum.auto()             # q_c, the least q_τ after an accepted onset (§4.7), N²·m²/s
     RESIDUAL_VAR = enum.auto()          # the static residual variance σ²_r (without heteroscedastic noise), N²·m²
     NEG_HALF_INV_LS2 = enum.auto()      # the q̇-only KMP's −1/(2ℓ²) (eq. 21), s²/rad²
     SIGMA_F2 = enum.auto()              # the KMP's σ_f², N²·m²

@@ -17,7 +17,7 @@ from kvark_ros.core.estimation.step_kernel import jit
 
 # sha256 of core/estimation/kernel_layouts.py (its docstring): update it with the file,
 # so numba recompiles these kernels.
-LAYOUTS_DIGEST = "6dfb8facd529e5115e5c74eda29203f927c8ad4cdc256ff677ddb516edc27f18"
+LAYOUTS_DIGEST = "bd6c2c2bebe3a8abc39aa0d302fd5e0cc972fb0b4f532e271f1a41c16a46f28d"
 
 
 @jit

@@ -37,7 +37,7 @@ from kvark_ros.core.estimation.kernel_layouts import (CONST_ROWS, PARAMS, VEC_RO
 
 # sha256 of core/estimation/kernel_layouts.py (module docstring): update it with the file,
 # so numba recompiles the kernels.
-LAYOUTS_DIGEST = "6dfb8facd529e5115e5c74eda29203f927c8ad4cdc256ff677ddb516edc27f18"
+LAYOUTS_DIGEST = "bd6c2c2bebe3a8abc39aa0d302fd5e0cc972fb0b4f532e271f1a41c16a46f28d"
 
 # Samples of evidence from which an accepted jump counts as a step; on fewer its Var τ̂ also spans an impulse (§4.7).
 ONSET_EVIDENCE = 2
@@ -245,7 +245,20 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
     if window and closing:
         age[column] = 0.0
     if onset:
-        alarms += _accept_jumps(gate, threshold, slot, p_hat, tau, a, b, c, ep, et, d, info)
+        accepted = _accept_jumps(gate, threshold, slot, p_hat, tau, a, b, c, ep, et, d, info)
+        alarms += accepted
+        if accepted:                                                   # a contact: Σ_d ≥ q_c h on every joint (§4.7)
+            prior = params[Param.PRIOR_DOF]
+            for j in range(n):
+                q_c = consts[Const.Q_CONTACT, j]
+                if window:
+                    if q[j] < q_c:
+                        q[j] = q_c
+                        scale[j] = q_c * (prior + dof) - prior * consts[Const.Q_TAU, j]   # eq. 39 solved for Υ
+                    sigma_d[j] = q[j] * dt
+                elif vb_iw and sigma_d[j] < q_c * dt:
+                    sigma_d[j] = q_c * dt
+                    vb_scale[j] = sigma_d[j] * (vb_dof[j] - 2.0)       # eqs. 39-40 solved for Υ
         for j in range(n):
             for i in range(ep.shape[1]):
                 ep[j, i] = ep[j, i] + dt * et[j, i]                    # e⁻_k+1 = F e⁺_k

@@ -23,14 +23,17 @@ def kvark_filter(variant: str, residual: ResidualPredictor, tuning: "FilterTunin
         return KVARKFilter(variant, residual, tuning, settings, name=name, sample_period=trained.sample_period)
     if trained.momentum_noise is None:
         raise ObserverError("filter.measurement: momentum needs the model's momentum noise; retrain the model")
-    noise = trained.momentum_noise
+    noise, contact = trained.momentum_noise, None
     if VARIANTS[variant].vb:
         # Σ_d adapts at contact, so its free-motion prior need not track contacts itself (docs/method.md §4.12);
         # the fixed-Σ_d variants keep the training's bandwidth, which must.
         noise = noise.with_bandwidth(settings.prior_bandwidth, trained.sample_period)
+        if settings.onset_contact_bandwidth > 0.0:                     # the least Σ_d after an accepted onset (§4.7)
+            contact = noise.with_bandwidth(settings.onset_contact_bandwidth, trained.sample_period).torque_density
     # imported here: numba loads (~0.2 s) only where the momentum form is built
     from kvark_ros.core.estimation.observers.kvark_kernel import KVARKKernelFilter
-    return KVARKKernelFilter(variant, residual, tuning, noise, settings, name=name, sample_period=trained.sample_period)
+    return KVARKKernelFilter(variant, residual, tuning, noise, settings, name=name, sample_period=trained.sample_period,
+                             contact_density=contact)
 
 
 def build(name: str, trained: "TrainedModel", settings: FilterSettings,

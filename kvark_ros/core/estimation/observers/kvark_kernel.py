@@ -139,18 +139,19 @@ class KVARKKernelFilter(KVARKMomentumFilter):
 
     def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning, noise: MomentumNoise,
                  settings: FilterSettings, name: str | None = None,
-                 sample_period: float = DEFAULT_SAMPLE_PERIOD) -> None:
+                 sample_period: float = DEFAULT_SAMPLE_PERIOD, contact_density: np.ndarray | None = None) -> None:
         n = residual.n_joints
         onsets = max(PerSample.of(settings, sample_period).onset_window, 2)   # OnsetDetector's M
         self.packed = KernelState(n, onsets)
         self._has_prediction = False
-        super().__init__(variant, residual, tuning, noise, settings, name=name, sample_period=sample_period)
+        super().__init__(variant, residual, tuning, noise, settings, name=name, sample_period=sample_period,
+                         contact_density=contact_density)
         kmp = self._kmp_inside = isinstance(residual, KMPResidualModel) and not residual.needs
         support = residual.n_support if kmp else 1
         self.constants = np.zeros(CONST_ROWS * n + PARAMS + n * support * (support + 2))
         consts, self._params, support_points, weights_t = split_constants.py_func(self.constants, n, support)
         consts[Const.R], consts[Const.R_MIN] = self.R, R_FLOOR * self.R
-        consts[Const.Q_P], consts[Const.Q_TAU] = self.q_p, self.q_tau
+        consts[Const.Q_P], consts[Const.Q_TAU], consts[Const.Q_CONTACT] = self.q_p, self.q_tau, self.contact_density
         consts[Const.RESIDUAL_VAR] = tuning.residual_variance
         if kmp:
             arrays = residual.kernel_arrays()

@@ -52,7 +52,8 @@ class KVARKMomentumFilter(KFMomentumObserver):
     the variants without heteroscedastic noise (A1). ``settings`` (``filter.*``): P_0, the VB
     keys, the onset detector's and the adaptation rates. With VB, ``window`` (``vb_variant:
     window``) and ``onset`` (``onset_threshold`` > 0) are the windowed VB and the contact-onset
-    detector; ``None`` when not used.
+    detector; ``None`` when not used. ``contact_density`` q_c (n,) N²·m²/s: an accepted onset
+    raises every joint's q_τ to at least q_c (the training's, the fixed filters' own, §4.7).
 
     ``step`` is abstract: the one implementation is the compiled ``KVARKKernelFilter`` (``observers.kvark_kernel``,
     ``step_kernel.kvark_step``), which ``make_observer`` builds for the momentum form. Its readable numpy
@@ -67,7 +68,7 @@ class KVARKMomentumFilter(KFMomentumObserver):
 
     def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning, noise: MomentumNoise,
                  settings: FilterSettings, name: str | None = None,
-                 sample_period: float = DEFAULT_SAMPLE_PERIOD) -> None:
+                 sample_period: float = DEFAULT_SAMPLE_PERIOD, contact_density: np.ndarray | None = None) -> None:
         if variant not in VARIANTS:
             raise ValueError(f"unknown K-VARK variant '{variant}'; known: {', '.join(VARIANTS)}")
         if problem := vb_variant_problem(settings.vb_variant, "momentum"):
@@ -89,6 +90,9 @@ class KVARKMomentumFilter(KFMomentumObserver):
                        if vb and settings.vb_variant == "window" else None)
         self.onset = (self._make_onset(residual.n_joints, settings.onset_threshold, per_sample.onset_window)
                       if vb and settings.onset_threshold > 0.0 else None)
+        # q_c, N²·m²/s: the least q_τ after an accepted onset, on every joint (§4.7); the prior's own by default
+        self.contact_density = np.asarray(noise.torque_density if contact_density is None else contact_density,
+                                          dtype=float)
         self._apply_runtime(settings)
         super().__init__(residual.n_joints, noise, initial_covariance=settings.initial_covariance, settings=settings)
         self.name = name or variant

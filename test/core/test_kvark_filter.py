@@ -205,7 +205,7 @@ def _random_walk_run(observer, n: int, h: float, density: float, R: float, steps
 def _window_filter(panda_config, n: int, q0: float, R: float, variant: str = "window", form: str = "reference",
                    contact_density: float | None = None, **settings):
     """The momentum-form kvark filter in ``form`` (a key of ``MOMENTUM_FORMS``); ``contact_density`` q_c (default
-    q0: an onset raises nothing)."""
+    None: 0, an onset raises nothing)."""
     tuning_ = FilterTuning(np.full(n, 5.0), np.full(n, 0.05), np.full(n, 0.02), np.full(n, 1e-4))
     noise = MomentumNoise(np.full(n, R), np.full(n, q0), np.full(n, 1e-8))
     config = replace(panda_config.filter, measurement="momentum", vb_variant=variant, vb_window_time=0.05,
@@ -409,28 +409,28 @@ def test_an_onset_raises_every_joint_to_the_contact_density(panda_config, rng, f
     q_0 = 0.05, momentum noise σ = 1e-3 N·m·s. With q_c = 2.0 the accepted onset raises q̂ of both joints to at least
     q_c (§4.7: a contact loads every joint through Jᵀ F, the detector sees it on one), and the window forgets the
     untouched joint's back towards q_0: 0.9 s after the ramp it is 0.077-0.097 (seeds 12345, 1-4), bound 0.2 (2×
-    margin). With q_c = q_0 (the rule off) the untouched joint stays at the prior."""
+    margin). With the rule off the untouched joint stays at the prior."""
     torque = [np.array([5.0 + min(k - 1000, 50) * 0.4 if k >= 1000 else 0.0, 0.0]) for k in range(1500)]
     raised = {}
-    for q_c in (0.05, 2.0):
+    for q_c in (None, 2.0):
         observer = _onset_filter(panda_config, 2, 60.0, form, contact_density=q_c)
         q = np.array([observer.window.q.copy() for _ in _joint_samples(observer, rng, torque.__getitem__, steps=1500)])
         assert observer.onset.alarms >= 1
         raised[q_c] = q[1000:1010].max(axis=0), q[-1]
     assert np.all(raised[2.0][0] >= 2.0)                                  # both joints, the untouched one too
     assert raised[2.0][1][1] < 0.2                                       # forgotten back towards the prior
-    assert raised[0.05][0][1] <= 0.05 and raised[0.05][1][1] <= 0.05
+    assert raised[None][0][1] <= 0.05 and raised[None][1][1] <= 0.05
 
 
 def test_the_contact_bandwidth_sets_the_least_density_after_an_onset(panda_config, panda_trained):
     """``filter.onset_contact_bandwidth``: q_c is the random walk of that natural frequency (the training's rule);
-    0 leaves q_c at the prior's own q_τ, so an onset raises nothing."""
+    0 leaves q_c at 0, so an onset raises nothing (not even a q̂ the window has lowered below the prior)."""
     settings = replace(panda_config.filter, measurement="momentum", onset_contact_bandwidth=50.0)
     observer = make_observer("kvark", panda_trained, settings)
     expected = panda_trained.momentum_noise.with_bandwidth(50.0, panda_trained.sample_period).torque_density
     assert np.allclose(observer.contact_density, expected) and np.all(expected > 5.0 * observer.q_tau)
     off = make_observer("kvark", panda_trained, replace(settings, onset_contact_bandwidth=0.0))
-    assert np.array_equal(off.contact_density, off.q_tau)
+    assert np.array_equal(off.contact_density, np.zeros(7))
 
 
 @pytest.mark.parametrize("form", MOMENTUM_FORMS)

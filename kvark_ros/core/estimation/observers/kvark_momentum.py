@@ -53,7 +53,7 @@ class KVARKMomentumFilter(KFMomentumObserver):
     keys, the onset detector's and the adaptation rates. With VB, ``window`` (``vb_variant:
     window``) and ``onset`` (``onset_threshold`` > 0) are the windowed VB and the contact-onset
     detector; ``None`` when not used. ``contact_density`` q_c (n,) N²·m²/s: an accepted onset
-    raises every joint's q_τ to at least q_c (the training's, the fixed filters' own, §4.7).
+    raises every joint's q_τ to at least q_c (``filter.onset_contact_bandwidth``, §4.7; None: 0, no raise).
 
     ``step`` is abstract: the one implementation is the compiled ``KVARKKernelFilter`` (``observers.kvark_kernel``,
     ``step_kernel.kvark_step``), which ``make_observer`` builds for the momentum form. Its readable numpy
@@ -90,9 +90,9 @@ class KVARKMomentumFilter(KFMomentumObserver):
                        if vb and settings.vb_variant == "window" else None)
         self.onset = (self._make_onset(residual.n_joints, settings.onset_threshold, per_sample.onset_window)
                       if vb and settings.onset_threshold > 0.0 else None)
-        # q_c, N²·m²/s: the least q_τ after an accepted onset, on every joint (§4.7); the prior's own by default
-        self.contact_density = np.asarray(noise.torque_density if contact_density is None else contact_density,
-                                          dtype=float)
+        # q_c, N²·m²/s: the least q_τ after an accepted onset, on every joint (§4.7); 0 (no raise) by default
+        self.contact_density = (np.zeros(residual.n_joints) if contact_density is None
+                                else np.asarray(contact_density, dtype=float))
         self._apply_runtime(settings)
         super().__init__(residual.n_joints, noise, initial_covariance=settings.initial_covariance, settings=settings)
         self.name = name or variant

@@ -175,7 +175,7 @@ KEYS: tuple[Key, ...] = (
          "contact-onset GLR threshold (χ²(1) statistic; 0 = off; momentum form)", **_unit(0.0, 1e6)),
     _key("filter.onset_window_time", "number", 0.02,
          "s back the contact onset may lie (time / t_s hypotheses, at least 2)", **_unit(0.001, 1.0)),
-    _key("filter.onset_contact_bandwidth", "number", 0.0,
+    _key("filter.onset_contact_bandwidth", "number", 100.0,
          "rad/s; at an accepted contact onset every joint's Σ_d rises to at least the τ_ext random walk of this "
          "natural frequency (50 = the fixed filters' own), which the window VB then forgets back to the prior; "
          "0 = off (docs/method.md §4.7)", **_unit(0.0, 1e4)),

@@ -224,3 +224,18 @@ def test_each_factor_is_the_larger_of_the_in_sample_one_and_the_one_on_motion_th
     assert read["unseen"] is not None and read["unseen_seconds"] == pytest.approx(4.0, abs=0.01)
     expected = np.clip(np.maximum(read["in_sample"], read["unseen"]), 0.05, 20.0)
     np.testing.assert_allclose(panda_trained.interval_scale.scale, expected, rtol=0, atol=0)
+
+
+def test_the_factors_are_read_on_the_filter_an_onset_does_not_raise(panda, panda_trained, panda_config):
+    """Training reads c with ``filter.onset_contact_bandwidth`` off (docs/method.md §4.7): a false onset in the
+    contact-free recordings would raise every joint's P for a while and so shrink c everywhere. At a threshold of 5
+    the detector fires often on this stream (so the key would move c if it were read with it on); the factors read
+    with the key at 0 and at 100 rad/s are the same."""
+    from kvark_ros.core.estimation.inputs import EstimatorInputs
+    from kvark_ros.core.learning.training import calibrate_intervals, training_data
+    stream = synthetic_stream(panda, 4.0, rate=500.0, seed=7)
+    data = training_data(panda, [EstimatorInputs(stream.stamp, stream.q, stream.qd, stream.tau_m, "synthetic", 0)])
+    settings = replace(panda_config.filter, measurement="momentum", onset_threshold=5.0)
+    read = {bandwidth: calibrate_intervals(panda_trained, data, replace(settings, onset_contact_bandwidth=bandwidth),
+                                           lambda _line: None).interval_scale.scale for bandwidth in (0.0, 100.0)}
+    np.testing.assert_array_equal(read[0.0], read[100.0])

@@ -348,10 +348,14 @@ def calibrate_intervals(trained: TrainedModel, data: TrainingData, settings: Fil
     band = (None if trained.stiction is None or velocity == 0.0
             else lambda qd: trained.stiction.variance(qd, velocity))
     floor = variance_floor(make_observer("kf", trained, settings), trained.sample_period)
+    # c is the misfit free motion shows, read on the filter an onset does not raise: a false onset there would
+    # raise every joint's P for a while and so shrink c everywhere (§4.7); at a real onset the raised P stays in
+    # what is reported, on top of c
+    reading = replace(settings, onset_contact_bandwidth=0.0)
 
     def factors(observer: str, model: TrainedModel, rows: Sequence[np.ndarray]) -> np.ndarray:
         kept = [(seg, dyn, row) for seg, dyn, row in zip(data.segments, data.dynamics, rows) if row.sum() > 1]
-        return interval_scale(make_observer(observer, model, settings),
+        return interval_scale(make_observer(observer, model, reading),
                               [seg.stamp[row] for seg, _, row in kept], [seg.qd[row] for seg, _, row in kept],
                               [seg.q[row] for seg, _, row in kept], [dyn.p[row] for _, dyn, row in kept],
                               [dyn.u[row] for _, dyn, row in kept], [dyn.g[row] for _, dyn, row in kept],

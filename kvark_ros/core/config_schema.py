@@ -172,8 +172,7 @@ KEYS: tuple[Key, ...] = (
          "prior in free motion; the VB and the onset detector raise it at contact (docs/method.md §4.12)",
          **_unit(0.0, 1e4, low_open=True)),
     _key("filter.onset_threshold", "number", 60.0,
-         "contact-onset GLR threshold (χ²(1) statistic; 0 = off; momentum form); training raises it, doubling up to 8 ×, "
-         "until its contact-free recordings raise no onset, and off beyond (docs/method.md §4.7)", **_unit(0.0, 1e6)),
+         "contact-onset GLR threshold (χ²(1) statistic; 0 = off; momentum form)", **_unit(0.0, 1e6)),
     _key("filter.onset_window_time", "number", 0.02,
          "s back the contact onset may lie (time / t_s hypotheses, at least 2)", **_unit(0.001, 1.0)),
     _key("filter.onset_contact_bandwidth", "number", 100.0,

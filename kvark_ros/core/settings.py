@@ -59,9 +59,7 @@ class FilterSettings:
     free motion; the VB and the onset detector raise it at contact (docs/method.md §4.12). Allowed: a number in (0.0,
     10000.0]."""
     onset_threshold: float = 60.0
-    """contact-onset GLR threshold (χ²(1) statistic; 0 = off; momentum form); training raises it, doubling up to 8 ×,
-    until its contact-free recordings raise no onset, and off beyond (docs/method.md §4.7). Allowed: a number in [0.0,
-    1000000.0]."""
+    """contact-onset GLR threshold (χ²(1) statistic; 0 = off; momentum form). Allowed: a number in [0.0, 1000000.0]."""
     onset_window_time: float = 0.02
     """s back the contact onset may lie (time / t_s hypotheses, at least 2). Allowed: a number in [0.001, 1.0]."""
     onset_contact_bandwidth: float = 100.0

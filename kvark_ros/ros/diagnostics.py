@@ -17,7 +17,6 @@ from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 
 from kvark_ros.core.estimation.estimator import Estimate, Status
 from kvark_ros.core.estimation.model_checks import model_warnings
-from kvark_ros.core.estimation.observers.kvark_family import onset_threshold_in_force
 from kvark_ros.core.estimation.pairing import Reject
 from kvark_ros.core.estimation.tare import Tare
 
@@ -68,8 +67,7 @@ class StatusBuilder:
         values.update({"trained_samples": info.get("samples", "?"), "trained_with": info.get("kvark_ros_version", "?"),
                        "residual_compensated": estimator.observer.uses_residual_model})
         values.update({"model_sample_rate_hz": f"{estimator.trained.sample_rate:.1f}",
-                       "data_rate_hz": f"{data_rate:.1f}",
-                       "onset_threshold": f"{onset_threshold_in_force(config.filter, estimator.trained):g}"})
+                       "data_rate_hz": f"{data_rate:.1f}"})
         if reload_problem is not None:
             return self.status(1, "model", f"last reload failed, previous model kept: {reload_problem}", values)
         warnings = model_warnings(estimator.trained, config.robot, data_rate, simulated=None)

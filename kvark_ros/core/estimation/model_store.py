@@ -9,7 +9,6 @@ swaps it in with renames, so a failed save never leaves a half-written or broken
 """
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,7 +52,6 @@ class TrainedModel:
     sample_period: float = DEFAULT_SAMPLE_PERIOD   # t_s, s: median period of the training data
     stiction: StictionBand | None = None           # static friction band per joint (None: not identified)
     interval_scale: IntervalScale | None = None    # kvark's reported-interval factors (None: not calibrated)
-    onset_threshold: float | None = None           # least contact-onset threshold, 0 = detector off (None: not read)
 
     @property
     def sample_rate(self) -> float:
@@ -83,8 +81,7 @@ def write_model_files(directory: Path, model: TrainedModel) -> None:
                 "augmentation_sha256": None if model.augmentation is None else model.augmentation.sha256,
                 "sample_rate_hz": model.sample_rate,
                 "stiction": None if model.stiction is None else model.stiction.to_dict(),
-                "interval_scale": None if model.interval_scale is None else model.interval_scale.to_dict(),
-                "onset_threshold": model.onset_threshold}
+                "interval_scale": None if model.interval_scale is None else model.interval_scale.to_dict()}
     if model.augmentation is not None:
         (directory / AUGMENTATION_FILE).write_text(model.augmentation.text)
     (directory / MODEL_FILE).write_text(yaml.safe_dump(document, sort_keys=False))
@@ -117,7 +114,6 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
         stiction = None if document.get("stiction") is None else StictionBand.from_dict(document["stiction"])
         scale = document.get("interval_scale")
         interval_scale = None if scale is None else IntervalScale.from_dict(scale)
-        onset_threshold = _onset_threshold(document.get("onset_threshold"))
     except (KeyError, TypeError, ValueError) as exc:
         raise ResidualModelError(f"{path}: incomplete or invalid model file ({exc}); retrain the model") from exc
     if joint_names is not None and tuple(joint_names) != names:
@@ -140,21 +136,7 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
     if sizes != {len(names)}:
         raise ResidualModelError(f"{path}: residual models and filter tunings disagree on the number of joints")
     return TrainedModel(robot, names, residual, tuning, dict(document.get("info") or {}), baselines,
-                        baseline_tunings, momentum_noise, augmentation, sample_period, stiction, interval_scale,
-                        onset_threshold)
-
-
-def _onset_threshold(value: Any) -> float | None:
-    """model.yaml's least contact-onset threshold: None (not read: models trained before it) or a finite number >= 0."""
-    if value is None:
-        return None
-    try:
-        threshold = float(value)
-    except (TypeError, ValueError):
-        threshold = math.nan
-    if not 0.0 <= threshold < math.inf:
-        raise ValueError(f"onset_threshold {value!r} is not a finite number >= 0")
-    return threshold
+                        baseline_tunings, momentum_noise, augmentation, sample_period, stiction, interval_scale)
 
 
 def _load_augmentation(directory: Path, joint_names: tuple[str, ...], recorded: str | None) -> Augmentation | None:

@@ -8,11 +8,11 @@ only widen that interval.
 """
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from kvark_ros.core.estimation.calibration import COVERAGE
+from kvark_ros.core.estimation.calibration import COVERAGE, IntervalScale
 
 Z95 = 1.959963984540054       # two-sided 95 % quantile of N(0, 1)
 WARMUP = 0.5                  # s at the start of every recording left out (the filter starts from τ̂ = 0, P₀)
@@ -58,44 +58,28 @@ def floor_factor(kf_scale: np.ndarray) -> np.ndarray:
     return np.minimum(np.asarray(kf_scale, dtype=float), 1.0)
 
 
-class FactorReading(NamedTuple):
-    """What one pass over the contact-free recordings read: c (n,) and the contact onsets the observer's detector
-    accepted there (each a false alarm: the recordings hold no contact; 0 for an observer without one)."""
-
-    scale: np.ndarray
-    onsets: int
-
-
 def interval_scale(observer: Any, stamps: Sequence[np.ndarray], qd: Sequence[np.ndarray], q: Sequence[np.ndarray],
                    p: Sequence[np.ndarray], u: Sequence[np.ndarray], g: Sequence[np.ndarray],
-                   band: Callable[[np.ndarray], np.ndarray] | None = None) -> FactorReading:
+                   band: Callable[[np.ndarray], np.ndarray] | None = None) -> IntervalScale:
     """c from contact-free recordings: per recording stamps (T,) s, q̇, q (T, n), the model's momentum p (T, n)
     N·m·s, its input u (T, n) N·m and gravity torque g (T, n) N·m (``training.SegmentDynamics``); ``band`` maps
     q̇ (T, n) rad/s to the static friction band's σ²_s (T, n) N²·m² the estimator adds (None: no band).
 
     ``observer`` (a fresh K-VARK filter built from the trained model) is reset and stepped over every recording as
     the Estimator steps it; c_j is the 95 % quantile of ``needed_factor`` over the samples after ``WARMUP`` (without
-    a band q_95(|τ̂_j| / σ_j) / 1.96), clipped to ``SCALE_BOUNDS``; with it the onsets the observer's contact-onset
-    detector (``observer.onset``, if any) accepted over the same samples (after ``WARMUP``: the start from P₀ is
-    left out here too).
+    a band q_95(|τ̂_j| / σ_j) / 1.96), clipped to ``SCALE_BOUNDS``.
     """
-    needed, onsets = [], 0
-    detector = getattr(observer, "onset", None)
+    needed = []
     for stamp, qd_k, q_k, p_k, u_k, g_k in zip(stamps, qd, q, p, u, g):
         observer.reset()
         kept = np.flatnonzero(stamp - stamp[0] >= WARMUP)
         kept = kept[kept >= 1]
         tau_hat = np.empty((len(stamp), p_k.shape[1]))
         sigma = np.ones_like(tau_hat)
-        first = kept[0] if len(kept) else len(stamp)
         for k in range(1, len(stamp)):
-            if detector is not None and k == first:
-                onsets -= detector.alarms                   # those accepted in the warm-up
             tau_hat[k], cov = observer.step(stamp[k] - stamp[k - 1], qd_k[k], p_k[k], p_k[k - 1], u_k[k - 1], q_k[k],
                                             g_k[k])
             sigma[k] = np.sqrt(np.diag(cov))
-        if detector is not None and first < len(stamp):
-            onsets += detector.alarms
         widening = np.zeros((len(kept), p_k.shape[1])) if band is None else band(qd_k[kept])
         needed.append(needed_factor(tau_hat[kept], sigma[kept], widening))
     observer.reset()
@@ -103,4 +87,4 @@ def interval_scale(observer: Any, stamps: Sequence[np.ndarray], qd: Sequence[np.
     if len(samples) < 100 or not np.all(np.isfinite(samples)):
         raise ValueError(f"interval calibration needs at least 100 finite samples after {WARMUP} s, got "
                          f"{len(samples)}")
-    return FactorReading(np.clip(np.quantile(samples, COVERAGE, axis=0), *SCALE_BOUNDS), onsets)
+    return IntervalScale(np.clip(np.quantile(samples, COVERAGE, axis=0), *SCALE_BOUNDS))

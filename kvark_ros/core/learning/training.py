@@ -35,7 +35,7 @@ from kvark_ros.core.estimation.residual.common import joint_workers, single_thre
 from kvark_ros.core.learning.kmp_inputs import fit_kmp, second_inputs, start_kmp_fit
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.estimation.stiction import StictionBand
-from kvark_ros.core.learning.interval_factors import FactorReading, floor_factor, interval_scale, variance_floor
+from kvark_ros.core.learning.interval_factors import floor_factor, interval_scale, variance_floor
 from kvark_ros.core.learning.static_band import friction_torque, identify_band
 from kvark_ros.core.learning.tuning import match_covariances, virtual_measurements
 
@@ -50,7 +50,6 @@ COVERAGE_TARGET = 0.95       # λ₂ is set so that 95 % of held-out residuals f
 LAMBDA2_GRID = np.geomspace(1e-2, 1e8, 61)
 SAVGOL_WINDOW = 0.15         # s, window of the acceleration and torque filter (75 samples at 500 Hz)
 MIN_UNSEEN = 2.0             # s of unseen recording ends (4 × the 0.5 s warm-up) below which c is read in-sample only
-ONSET_RAISES = 3             # doublings of filter.onset_threshold tried in contact-free training motion (to 8 ×)
 BAND_WINDOW = 0.05           # s, the same filter for the friction the static band is read from (band_friction)
 
 
@@ -343,11 +342,8 @@ def calibrate_intervals(trained: TrainedModel, data: TrainingData, settings: Fil
     those samples (T,) bool: the ends of the recordings) of at least ``MIN_UNSEEN`` s, also where that model has
     not seen the motion: the model error a new recording meets. Each joint keeps the larger factor. The result also
     holds the reported variance's floor: the ``kf``'s steady state P_b (``variance_floor``) and its factor in free
-    motion c_b, ``kf``'s own factor read the same way where below 1 (``floor_factor``), and the contact-onset
-    threshold these recordings raise no alarm at (``quiet_onset_threshold``)."""
+    motion c_b, ``kf``'s own factor read the same way where below 1 (``floor_factor``)."""
     started = time.perf_counter()
-    trained = replace(trained, onset_threshold=None)     # read afresh below, at the configured threshold up
-    unseen = None if unseen is None else (replace(unseen[0], onset_threshold=None), unseen[1])
     velocity = settings.stiction_velocity
     band = (None if trained.stiction is None or velocity == 0.0
             else lambda qd: trained.stiction.variance(qd, velocity))
@@ -357,38 +353,27 @@ def calibrate_intervals(trained: TrainedModel, data: TrainingData, settings: Fil
     # what is reported, on top of c
     reading = replace(settings, onset_contact_bandwidth=0.0)
 
-    def factors(observer: str, model: TrainedModel, rows: Sequence[np.ndarray],
-                threshold: float = settings.onset_threshold) -> FactorReading:
+    def factors(observer: str, model: TrainedModel, rows: Sequence[np.ndarray]) -> np.ndarray:
         kept = [(seg, dyn, row) for seg, dyn, row in zip(data.segments, data.dynamics, rows) if row.sum() > 1]
-        return interval_scale(make_observer(observer, model, replace(reading, onset_threshold=threshold)),
+        return interval_scale(make_observer(observer, model, reading),
                               [seg.stamp[row] for seg, _, row in kept], [seg.qd[row] for seg, _, row in kept],
                               [seg.q[row] for seg, _, row in kept], [dyn.p[row] for _, dyn, row in kept],
                               [dyn.u[row] for _, dyn, row in kept], [dyn.g[row] for _, dyn, row in kept],
-                              band)
+                              band).scale
 
     everything = [np.ones(len(seg.stamp), bool) for seg in data.segments]
-    parts, seconds = [], 0.0
+    in_sample, kf_in_sample = factors(CALIBRATED_OBSERVER, trained, everything), factors("kf", trained, everything)
+    scale, kf_scale, out, seconds = in_sample, kf_in_sample, None, 0.0
+    text = "in-sample " + ", ".join(f"{name} {value:.2f}" for name, value in zip(trained.joint_names, in_sample))
     if unseen is not None:
         cuts = np.cumsum([0] + [len(seg.stamp) for seg in data.segments])
         parts = [unseen[1][a:b] for a, b in zip(cuts[:-1], cuts[1:])]
         seconds = sum(float(np.ptp(seg.stamp[part])) for seg, part in zip(data.segments, parts) if part.sum() > 1)
-    held_out = unseen is not None and seconds >= MIN_UNSEEN
-
-    def kvark_factors(threshold: float) -> tuple[FactorReading, FactorReading | None]:
-        return (factors(CALIBRATED_OBSERVER, trained, everything, threshold),
-                factors(CALIBRATED_OBSERVER, unseen[0], parts, threshold) if held_out else None)
-
-    threshold, (in_reading, out_reading) = quiet_onset_threshold(settings.onset_threshold, kvark_factors,
-                                                                 sum(float(np.ptp(seg.stamp)) for seg in data.segments),
-                                                                 log)
-    in_sample, kf_in_sample = in_reading.scale, factors("kf", trained, everything).scale
-    scale, kf_scale, out = in_sample, kf_in_sample, None
-    text = "in-sample " + ", ".join(f"{name} {value:.2f}" for name, value in zip(trained.joint_names, in_sample))
-    if out_reading is not None:
-        out = out_reading.scale
-        text += "; on unseen ends " + ", ".join(f"{value:.2f}" for value in out)
-        scale = np.maximum(in_sample, out)
-        kf_scale = np.maximum(kf_in_sample, factors("kf", unseen[0], parts).scale)
+        if seconds >= MIN_UNSEEN:
+            out = factors(CALIBRATED_OBSERVER, unseen[0], parts)
+            text += "; on unseen ends " + ", ".join(f"{value:.2f}" for value in out)
+            scale = np.maximum(in_sample, out)
+            kf_scale = np.maximum(kf_in_sample, factors("kf", unseen[0], parts))
     narrowing = floor_factor(kf_scale)
     text += ("; floor σ_b (kf's steady state, N·m) " + ", ".join(f"{value:.3g}" for value in np.sqrt(floor))
              + ", in free motion × c_b " + ", ".join(f"{value:.2f}" for value in narrowing))
@@ -398,29 +383,4 @@ def calibrate_intervals(trained: TrainedModel, data: TrainingData, settings: Fil
     info = {**trained.info, "interval_factors": {"in_sample": in_sample.tolist(), "unseen_seconds": round(seconds, 2),
                                                  "unseen": None if out is None else out.tolist(),
                                                  "kf": kf_scale.tolist()}}
-    return replace(trained, interval_scale=IntervalScale(scale, floor, narrowing), info=info,
-                   onset_threshold=None if settings.onset_threshold == 0.0 else threshold)
-
-
-def quiet_onset_threshold(configured: float, read: Callable[[float], tuple[FactorReading, FactorReading | None]],
-                          seconds: float, log: Callable[[str], None]) -> tuple[float, tuple]:
-    """The least of ``configured`` × 2^i, i ≤ ``ONSET_RAISES``, at which the contact-free training recordings
-    (``seconds`` long) raise no contact onset, or 0 (detector off) if none does; with what ``read`` (one pass over
-    them at a threshold: in-sample, unseen ends) gave there (docs/method.md §4.7). Why: the GLR statistic is χ²(1)
-    only under the filter's Gaussian noise model; a robot whose residual has heavier tails (motor-current torque,
-    dry friction) crosses any fixed threshold in free motion, and each false onset makes the filter follow its
-    own misfit. An onset the training's own motion raises would be raised in use too."""
-    threshold, readings = configured, read(configured)
-    for raised in range(ONSET_RAISES + 1):
-        onsets = sum(reading.onsets for reading in readings if reading is not None)
-        if threshold == 0.0 or onsets == 0:
-            break
-        following = configured * 2.0 ** (raised + 1) if raised < ONSET_RAISES else 0.0
-        log(f"[train] contact-onset detector: {onsets} onsets accepted in {seconds:.1f} s of contact-free training "
-            f"motion at filter.onset_threshold {threshold:g}; "
-            + (f"trying {following:g}" if following else "the detector is turned off for this model"))
-        threshold, readings = following, read(following)
-    if threshold != configured and threshold > 0.0:
-        log(f"[train] contact-onset detector: no onset in the contact-free training motion at {threshold:g}; the "
-            f"model keeps it as the least filter.onset_threshold")
-    return threshold, readings
+    return replace(trained, interval_scale=IntervalScale(scale, floor, narrowing), info=info)

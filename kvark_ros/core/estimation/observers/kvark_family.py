@@ -33,16 +33,7 @@ def kvark_filter(variant: str, residual: ResidualPredictor, tuning: "FilterTunin
     # imported here: numba loads (~0.2 s) only where the momentum form is built
     from kvark_ros.core.estimation.observers.kvark_kernel import KVARKKernelFilter
     return KVARKKernelFilter(variant, residual, tuning, noise, settings, name=name, sample_period=trained.sample_period,
-                             contact_density=contact, onset_threshold=onset_threshold_in_force(settings, trained))
-
-
-def onset_threshold_in_force(settings: FilterSettings, trained: "TrainedModel") -> float:
-    """The contact-onset threshold the filter runs with: ``filter.onset_threshold``, at least the model's
-    (the least its contact-free training motion raised no onset at; 0 there: the detector off), docs/method.md §4.7.
-    Off in the configuration stays off; models trained before it was read keep the configured one."""
-    if settings.onset_threshold == 0.0 or trained.onset_threshold is None:
-        return settings.onset_threshold
-    return 0.0 if trained.onset_threshold == 0.0 else max(settings.onset_threshold, trained.onset_threshold)
+                             contact_density=contact)
 
 
 def build(name: str, trained: "TrainedModel", settings: FilterSettings,

@@ -139,14 +139,13 @@ class KVARKKernelFilter(KVARKMomentumFilter):
 
     def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning, noise: MomentumNoise,
                  settings: FilterSettings, name: str | None = None,
-                 sample_period: float = DEFAULT_SAMPLE_PERIOD, contact_density: np.ndarray | None = None,
-                 onset_threshold: float | None = None) -> None:
+                 sample_period: float = DEFAULT_SAMPLE_PERIOD, contact_density: np.ndarray | None = None) -> None:
         n = residual.n_joints
         onsets = max(PerSample.of(settings, sample_period).onset_window, 2)   # OnsetDetector's M
         self.packed = KernelState(n, onsets)
         self._has_prediction = False
         super().__init__(variant, residual, tuning, noise, settings, name=name, sample_period=sample_period,
-                         contact_density=contact_density, onset_threshold=onset_threshold)
+                         contact_density=contact_density)
         kmp = self._kmp_inside = isinstance(residual, KMPResidualModel) and not residual.needs
         support = residual.n_support if kmp else 1
         self.constants = np.zeros(CONST_ROWS * n + PARAMS + n * support * (support + 2))

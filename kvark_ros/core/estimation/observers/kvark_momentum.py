@@ -54,8 +54,6 @@ class KVARKMomentumFilter(KFMomentumObserver):
     window``) and ``onset`` (``onset_threshold`` > 0) are the windowed VB and the contact-onset
     detector; ``None`` when not used. ``contact_density`` q_c (n,) N²·m²/s: an accepted onset
     raises every joint's q_τ to at least q_c (``filter.onset_contact_bandwidth``, §4.7; None: 0, no raise).
-    ``onset_threshold``: the detector's threshold in force (None: ``settings.onset_threshold``; ``kvark_family`` passes
-    the larger of it and the model's, read at training, §4.7).
 
     ``step`` is abstract: the one implementation is the compiled ``KVARKKernelFilter`` (``observers.kvark_kernel``,
     ``step_kernel.kvark_step``), which ``make_observer`` builds for the momentum form. Its readable numpy
@@ -70,8 +68,7 @@ class KVARKMomentumFilter(KFMomentumObserver):
 
     def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning, noise: MomentumNoise,
                  settings: FilterSettings, name: str | None = None,
-                 sample_period: float = DEFAULT_SAMPLE_PERIOD, contact_density: np.ndarray | None = None,
-                 onset_threshold: float | None = None) -> None:
+                 sample_period: float = DEFAULT_SAMPLE_PERIOD, contact_density: np.ndarray | None = None) -> None:
         if variant not in VARIANTS:
             raise ValueError(f"unknown K-VARK variant '{variant}'; known: {', '.join(VARIANTS)}")
         if problem := vb_variant_problem(settings.vb_variant, "momentum"):
@@ -91,9 +88,8 @@ class KVARKMomentumFilter(KFMomentumObserver):
         self.window = (self._make_window(noise.torque_density, per_sample.vb_window, per_sample.vb_forgetting,
                                          settings.vb_prior_dof, settings.vb_window_source == "prior")
                        if vb and settings.vb_variant == "window" else None)
-        threshold = settings.onset_threshold if onset_threshold is None else onset_threshold
-        self.onset = (self._make_onset(residual.n_joints, threshold, per_sample.onset_window)
-                      if vb and threshold > 0.0 else None)
+        self.onset = (self._make_onset(residual.n_joints, settings.onset_threshold, per_sample.onset_window)
+                      if vb and settings.onset_threshold > 0.0 else None)
         # q_c, N²·m²/s: the least q_τ after an accepted onset, on every joint (§4.7); 0 (no raise) by default
         self.contact_density = (np.zeros(residual.n_joints) if contact_density is None
                                 else np.asarray(contact_density, dtype=float))

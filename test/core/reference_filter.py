@@ -102,7 +102,8 @@ class Jump:
     ``e_t · size`` to τ̂, ``e eᵀ · variance`` to each joint's P and ``e_t² · doubt`` to its P_ττ (onset.py's docstring).
 
     e_p, e_t: e⁺_k of the accepted onset θ (J,); size: Δ̂_θ (J,) N·m; variance: Var Δ̂_θ = 1/C (J,) N²·m²;
-    doubt: Δ̂_θ² where the jump was seen on one sample (a step or an impulse, which differ in τ alone), else 0.
+    doubt: Δ̂_θ² where the jump was seen on one sample (a step or an impulse, which differ in τ alone), else 0;
+    step: seen on ``ONSET_EVIDENCE`` samples or more (J,) bool.
     """
 
     joints: np.ndarray
@@ -111,6 +112,7 @@ class Jump:
     size: np.ndarray
     variance: np.ndarray
     doubt: np.ndarray
+    step: np.ndarray
 
 
 class ReferenceOnsetDetector(OnsetDetector):
@@ -141,7 +143,7 @@ class ReferenceOnsetDetector(OnsetDetector):
             size = d[joints, theta] / information                       # Δ̂_θ
             one_sample = (self.slot - 1 - theta) % d.shape[1] < ONSET_EVIDENCE   # a step or an impulse
             doubt = np.where(one_sample, size * size, 0.0)
-            jump = Jump(joints, ep[joints, theta], et[joints, theta], size, 1.0 / information, doubt)
+            jump = Jump(joints, ep[joints, theta], et[joints, theta], size, 1.0 / information, doubt, ~one_sample)
             ep[joints], et[joints] = 0.0, 0.0                           # no hypothesis spans the correction
             d[joints], c[joints] = 0.0, 0.0
             self.alarms += len(joints)
@@ -215,7 +217,8 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
 
     def _apply_jump(self, jump: Jump, h: float) -> None:
         """Correct the state for the onset detector's accepted jumps: x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ Var Δ̂, and
-        P_ττ += e⁺_τ² · doubt; then every joint's Σ_d at least q_c h (``_raise_to_contact``)."""
+        P_ττ += e⁺_τ² · doubt; then, if any was seen as a step, every joint's Σ_d at least q_c h
+        (``_raise_to_contact``)."""
         joints, e_p, e_t, spread = jump.joints, jump.e_p, jump.e_t, jump.variance
         self.p_hat = self.p_hat.copy()
         self.tau = self.tau.copy()
@@ -224,7 +227,8 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
         self.a[joints] += e_p * e_p * spread
         self.b[joints] += e_p * e_t * spread
         self.c[joints] += e_t * e_t * (spread + jump.doubt)
-        self._raise_to_contact(h)
+        if jump.step.any():
+            self._raise_to_contact(h)
 
     def _raise_to_contact(self, h: float) -> None:
         """A contact: every joint's q̂ (window) or Σ_d (per-sample VB) at least q_c (h) (§4.7), the VB's statistics

@@ -245,9 +245,9 @@ def kvark_step(dt: float, qd: np.ndarray, p: np.ndarray, u_prev: np.ndarray, sta
     if window and closing:
         age[column] = 0.0
     if onset:
-        accepted = _accept_jumps(gate, threshold, slot, p_hat, tau, a, b, c, ep, et, d, info)
+        accepted, steps = _accept_jumps(gate, threshold, slot, p_hat, tau, a, b, c, ep, et, d, info)
         alarms += accepted
-        if accepted:                                                   # a contact: Σ_d ≥ q_c h on every joint (§4.7)
+        if steps:                                   # a contact seen as a step: Σ_d ≥ q_c h on every joint (§4.7)
             prior = params[Param.PRIOR_DOF]
             for j in range(n):
                 q_c = consts[Const.Q_CONTACT, j]
@@ -295,13 +295,14 @@ def _update(a_m: float, b_m: float, c_m: float,
 
 @jit
 def _accept_jumps(gate: bool, threshold: float, slot: int, p_hat: np.ndarray, tau: np.ndarray, a: np.ndarray,
-                  b: np.ndarray, c: np.ndarray, ep: np.ndarray, et: np.ndarray, d: np.ndarray, info: np.ndarray) -> int:
+                  b: np.ndarray, c: np.ndarray, ep: np.ndarray, et: np.ndarray, d: np.ndarray,
+                  info: np.ndarray) -> tuple[int, int]:
     """Accept the jumps whose ℓ_θ = d²/C exceeds the threshold (once any d² > threshold C) and correct the state,
     x̂ += e⁺ Δ̂, P += e⁺ e⁺ᵀ Var Δ̂, P_ττ += (e⁺_τ Δ̂)² on one sample (onset.py); that joint's hypotheses restart.
-    Returns the number of joints."""
+    Returns the number of joints and of those whose jump was seen on ``ONSET_EVIDENCE`` samples or more (steps)."""
     if not gate:
-        return 0
-    accepted, onsets = 0, ep.shape[1]
+        return 0, 0
+    accepted, steps, onsets = 0, 0, ep.shape[1]
     for j in range(tau.shape[0]):
         best, theta = -np.inf, 0
         for i in range(onsets):
@@ -322,7 +323,8 @@ def _accept_jumps(gate: bool, threshold: float, slot: int, p_hat: np.ndarray, ta
         c[j] += e_t * e_t * (spread + doubt)
         ep[j, :], et[j, :], d[j, :], info[j, :] = 0.0, 0.0, 0.0, 0.0  # no hypothesis spans the correction
         accepted += 1
-    return accepted
+        steps += 0 if one_sample else 1
+    return accepted, steps
 
 
 @jit

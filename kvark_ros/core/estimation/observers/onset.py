@@ -29,9 +29,11 @@ and the next samples, weighed by that P, settle which it was. The window VB then
 as before. Per joint, hypotheses live in a ring of M slots, one new onset per sample, arrays (n, M):
 a few vector operations per step.
 
-With ``filter.onset_contact_bandwidth`` ω_c > 0 an accepted onset also raises every joint's window density to at
-least q_c, the random walk of natural frequency ω_c (docs/method.md §4.7): a contact loads every joint through Jᵀ F,
-while the detector sees it on the joint whose signature is clearest; the others' rise is a ramp the VB reads late.
+With ``filter.onset_contact_bandwidth`` ω_c > 0 an onset accepted on more than one sample of evidence also raises
+every joint's window density to at least q_c, the random walk of natural frequency ω_c (docs/method.md §4.7): a
+contact loads every joint through Jᵀ F, while the detector sees it on the joint whose signature is clearest; the
+others' rise is a ramp the VB reads late. A one-sample onset may be no contact at all (an impulse, an outlying
+reading), so it raises nothing beyond its own Var τ̂.
 
 The detector belongs to the Σ_d adaptation (a jump is the limit of a large Σ_d for one sample),
 so only the variants with VB use it; the fixed-Q ablations (``kf``, ``kmp_kf*``) stay the paper's

@@ -176,9 +176,9 @@ KEYS: tuple[Key, ...] = (
     _key("filter.onset_window_time", "number", 0.02,
          "s back the contact onset may lie (time / t_s hypotheses, at least 2)", **_unit(0.001, 1.0)),
     _key("filter.onset_contact_bandwidth", "number", 100.0,
-         "rad/s; at an accepted contact onset every joint's Σ_d rises to at least the τ_ext random walk of this "
-         "natural frequency (50 = the fixed filters' own), which the window VB then forgets back to the prior; "
-         "0 = off (docs/method.md §4.7)", **_unit(0.0, 1e4)),
+         "rad/s; at a contact onset accepted on more than one sample every joint's Σ_d rises to at least the τ_ext "
+         "random walk of this natural frequency (50 = the fixed filters' own), which the window VB then forgets back "
+         "to the prior; 0 = off (docs/method.md §4.7)", **_unit(0.0, 1e4)),
     _key("filter.measurement", "choice", "momentum", "form of the filter: p measured (momentum) or the paper's eq. 28 (difference)", choices=MEASUREMENTS),
     _key("filter.stiction_velocity", "number", 0.05,
          "rad/s; below it a joint counts as sticking: its interval widens to the trained static friction band "

@@ -63,9 +63,9 @@ class FilterSettings:
     onset_window_time: float = 0.02
     """s back the contact onset may lie (time / t_s hypotheses, at least 2). Allowed: a number in [0.001, 1.0]."""
     onset_contact_bandwidth: float = 100.0
-    """rad/s; at an accepted contact onset every joint's Σ_d rises to at least the τ_ext random walk of this natural
-    frequency (50 = the fixed filters' own), which the window VB then forgets back to the prior; 0 = off (docs/method.md
-    §4.7). Allowed: a number in [0.0, 10000.0]."""
+    """rad/s; at a contact onset accepted on more than one sample every joint's Σ_d rises to at least the τ_ext random
+    walk of this natural frequency (50 = the fixed filters' own), which the window VB then forgets back to the prior; 0
+    = off (docs/method.md §4.7). Allowed: a number in [0.0, 10000.0]."""
     measurement: Literal["momentum", "difference"] = "momentum"
     """form of the filter: p measured (momentum) or the paper's eq. 28 (difference). Allowed: one of momentum,
     difference."""

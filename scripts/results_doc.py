@@ -111,7 +111,7 @@ def keep_demo(out: Path, stdout: str) -> dict:
     return {"scenes": keep_scenes({scene: read_json(out / scene / "metrics.json") for scene in SCENES}),
             "effects": [effect["name"] for effect in diagnosis["effects"]],
             "gap": [diagnosis["gap_before"]["joint_rmse_mean"], diagnosis["gap_after"]["joint_rmse_mean"]],
-            "node": [line for line in stdout.splitlines() if line.startswith("[node-check]")]}
+            "node": [line.replace(str(out), "DIR") for line in stdout.splitlines() if line.startswith("[node-check]")]}
 
 
 def render_demo(data: dict) -> str:

@@ -20,7 +20,6 @@ import json
 import os
 import re
 import shutil
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -148,8 +147,7 @@ def push_figures(pushes: dict) -> dict:
     """What the pushes' table shows: the pushes, and per observer τ_ext RMSE (all, during, after), coverage95 and
     the contact flag's median delay."""
     def delay(metrics: dict) -> float | None:
-        delays = metrics["contact"].get("detection_delay")
-        return None if not delays else statistics.median(delays)
+        return metrics["contact"].get("detection_delay_median")
 
     return {"force_n": pushes["force_n"], "count": pushes["count"], "hold_s": pushes["hold_s"],
             "ramp_s": pushes["ramp_s"],

@@ -158,8 +158,8 @@ def contact_metrics(stamp: np.ndarray, flag: np.ndarray, valid: np.ndarray, trut
     Contact where any joint's true |τ_ext| exceeds CONTACT_TORQUE. ``false_contact_share``: the share
     of contact-free samples (not in contact and at least SETTLE s after the last contact) that are
     flagged. Each onset (a sample in contact after one that is not) is detected when the flag rises
-    before the contact ends; ``detection_delay`` (s) is from the onset to the first flagged sample,
-    ``missed_onsets`` counts the others. None where the run has no such samples or onsets.
+    before the contact ends; ``detection_delay`` (s) is from the onset to the first flagged sample (with its mean
+    and median), ``missed_onsets`` counts the others. None where the run has no such samples or onsets.
 
     ``band`` (n,) N·m, the static friction band F_s (docs/method.md §4.11): a joint at rest holds any torque within
     ±F_s, so a push is visible only once it exceeds that. ``detection_delay_from_band`` (s) is counted from the
@@ -197,4 +197,5 @@ def contact_metrics(stamp: np.ndarray, flag: np.ndarray, valid: np.ndarray, trut
             "contact_free_samples": int(free.sum()),
             "onsets": len(delays) + missed, "missed_onsets": missed,
             "detection_delay": _rounded(np.array(delays)) if delays else None,
-            "detection_delay_mean": _rounded(float(np.mean(delays))) if delays else None}
+            "detection_delay_mean": _rounded(float(np.mean(delays))) if delays else None,
+            "detection_delay_median": _rounded(float(np.median(delays))) if delays else None}

@@ -105,10 +105,6 @@ def report(results: dict[str, Any]) -> str:
                               *push_table(results.get("pushes"))]) + "\n"
 
 
-def _median(values: Sequence[float] | None) -> float | None:
-    return None if not values else float(np.median(values))
-
-
 def push_table(pushes: dict[str, Any] | None) -> list[str]:
     """report.md's third table (``--pushes``): each observer on the held-out part with the pushes superposed."""
     if not pushes:
@@ -129,7 +125,7 @@ def push_table(pushes: dict[str, Any] | None) -> list[str]:
         contact, phases = entry["contact"], entry["push_rmse"]
         lines.append(f"| {name} | {cell(entry['joint_rmse_mean'])} / {cell(phases['during'])} / "
                      f"{cell(phases['after'])} | {cell(entry.get('force_rmse_mean'))} | "
-                     f"{cell(entry.get('coverage95'))} | {cell(_median(contact.get('detection_delay')), 0, 1000.0)} | "
+                     f"{cell(entry.get('coverage95'))} | {cell(contact.get('detection_delay_median'), 0, 1000.0)} | "
                      f"{contact.get('missed_onsets', '–')} | {cell(contact.get('false_contact_share'))} |")
     return lines
 

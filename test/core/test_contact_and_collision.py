@@ -142,6 +142,20 @@ def test_contact_metrics_of_a_hand_made_flag():
     assert no_contact["false_contact_share"] == 0.0
 
 
+def test_contact_delays_give_their_median_and_mean():
+    """1 ms samples; three contacts flagged 10, 20 and 90 ms after their onsets: median 20 ms, mean 40 ms (the
+    median is what the real benchmark's push table shows: one late flag does not move it)."""
+    stamp = 0.001 * np.arange(4000)
+    truth, flag = np.zeros((4000, 7)), np.zeros(4000, dtype=bool)
+    for onset, delay in ((500, 10), (1500, 20), (2500, 90)):
+        truth[onset:onset + 300, 0] = 2.0
+        flag[onset + delay:onset + 300] = True
+    figures = contact_metrics(stamp, flag, np.ones(4000, dtype=bool), truth)
+    assert figures["detection_delay"] == pytest.approx([0.010, 0.020, 0.090], abs=1e-9)
+    assert figures["detection_delay_median"] == pytest.approx(0.020, abs=1e-9)
+    assert figures["detection_delay_mean"] == pytest.approx(0.040, abs=1e-9)
+
+
 def test_contact_delay_counts_from_the_moment_the_push_exceeds_the_static_band():
     """A push ramping 0 → 4 N·m on joint 1 over 1 s (4 N·m/s) against a static band of 1.5 N·m on that joint: it is
     contact from 0.5 N·m (t = 0.125 s after the start of the ramp) but a joint at rest can hold it until it exceeds

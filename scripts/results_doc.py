@@ -281,7 +281,7 @@ SECTIONS = {
     "real-panda": Section(f"kvark benchmark --real {REAL_PANDA} {PUSHES} --out {{out}}/real", "docs/results.md",
                           keep_real, render_real),
     "real-ur10e": Section(REAL_UR10E, "docs/results.md", keep_real, render_real),
-    "population": Section("kvark benchmark --population 6 --seed 28 --out {out}/population", "docs/results.md",
+    "population": Section("kvark benchmark --population 6 --seed 29 --out {out}/population", "docs/results.md",
                           keep_population, render_population),
     "node": Section("kvark node-check --config config/panda.yaml --bag bags/panda_contact --reload-at 2.5 "
                     "--json {out}/node.json", "docs/results.md", keep_node, render_node),

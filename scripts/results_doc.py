@@ -146,14 +146,15 @@ def keep_real(out: Path, stdout: str) -> dict:
 def push_figures(pushes: dict) -> dict:
     """What the pushes' table shows: the pushes, and per observer τ_ext RMSE (all, during, after), coverage95 and
     the contact flag's median delay."""
-    def delay(metrics: dict) -> float | None:
-        return metrics["contact"].get("detection_delay_median")
+    def delay_ms(metrics: dict) -> float | None:
+        median = metrics["contact"].get("detection_delay_median")
+        return None if median is None else 1000.0 * median
 
     return {"force_n": pushes["force_n"], "count": pushes["count"], "hold_s": pushes["hold_s"],
             "ramp_s": pushes["ramp_s"],
             "observers": {name: {"joint_rmse": m["joint_rmse_mean"], "during": m["push_rmse"]["during"],
                                  "after": m["push_rmse"]["after"], "coverage95": m.get("coverage95"),
-                                 "delay_ms": None if delay(m) is None else 1000.0 * delay(m),
+                                 "delay_ms": delay_ms(m),
                                  "unflagged": m["contact"].get("missed_onsets")}
                           for name, m in pushes["observers"].items()}}
 

@@ -254,7 +254,7 @@ RENAMED_KEYS: dict[str, tuple[str, str]] = {
 }
 # Keys that no longer exist: the old name -> why, for the one-line error of a config that still sets one.
 REMOVED_KEYS: dict[str, str] = {
-    "filter.kernel": "the momentum-form K-VARK step is always compiled (core/estimation/step_kernel.py); "
+    "filter.kernel": "the momentum-form K-VARK step is always compiled (core/estimation/compiled); "
                      "delete the key",
 }
 GROUPS: tuple[str, ...] = tuple(dict.fromkeys(key.group for key in KEYS if key.group))

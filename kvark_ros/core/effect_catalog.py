@@ -10,8 +10,8 @@ the code that evaluates them:
 
 * a ``torque`` effect (a joint torque τ_aug the estimator adds, ``M q̈ + C q̇ + g + τ_aug = τ_m + τ_ext``): its
   regressor columns in ``core.estimation.augmentation.joint_columns`` and, compiled, a member of
-  ``core.estimation.kernel_layouts.Effect`` (its name in upper case) with its branch in
-  ``core.estimation.model_kernels.augmentation_torque``;
+  ``core.estimation.compiled.layouts.Effect`` (its name in upper case) with its branch in
+  ``core.estimation.compiled.residual.augmentation_torque``;
 * a ``structural`` effect (a change of M, C, g or of q): how ``core.estimation.augmentation.parse_augmentation``
   keeps it, how ``core.estimation.robot_model`` applies it, and its regressor in ``gap.effects`` (``signals``,
   ``Term.design``).

@@ -1,7 +1,7 @@
 """The numpy reference of the momentum-form K-VARK step: a test oracle, not production code.
 
-Production steps the momentum-form filter compiled only: ``KVARKKernelFilter`` (core/estimation/observers/
-kvark_kernel.py) calls ``step_kernel.kvark_step``. This module keeps the same equations as readable numpy, in the same
+Production steps the momentum-form filter compiled only: ``KVARKFilter`` (core/estimation/observers/kvark.py)
+calls ``compiled.kvark_filter.kvark_step``. This module keeps the same equations as readable numpy, in the same
 order of operations, on the production filter's settings, state and components (``KVARKMomentumFilter``,
 ``WindowVB``, ``OnsetDetector``, hooked in through its ``_make_window``/``_make_onset``):
 
@@ -10,8 +10,8 @@ order of operations, on the production filter's settings, state and components (
 - ``ReferenceOnsetDetector`` and ``Jump``: the Willsky-Jones GLR (onset.py's docstring).
 
 ``test_compiled_step_matches_reference.py`` pins the kernel to it (to rounding) on the committed bags, and the
-equation tests (``test_kvark_filter.py``) run it beside the kernel. ``reference_estimator`` is an ``Estimator`` whose
-K-VARK momentum filter is this reference, so that its whole step runs as numpy (``Estimator.compiled`` False).
+equation tests (``test_kvark_filter.py``) run it beside the kernel. ``reference_estimator`` is a ``ReferenceEstimator``
+(reference_estimator.py) whose K-VARK momentum filter is this reference, so that its whole step runs as numpy.
 Not collected as tests (no ``test_`` prefix); imported by the tests of test/core (pytest puts their directory on
 ``sys.path``).
 """
@@ -22,15 +22,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from kvark_ros.core.config import EstimatorConfig, FilterSettings
+from kvark_ros.core.estimation.compiled.kvark_filter import ONSET_EVIDENCE
 from kvark_ros.core.estimation.estimator import Estimator
 from kvark_ros.core.estimation.model_store import TrainedModel
 from kvark_ros.core.estimation.observers import Observer, ResidualPredictor, make_observer
-from kvark_ros.core.estimation.observers.kvark_filter import NIS_SCALE_BOUNDS, VARIANTS
-from kvark_ros.core.estimation.observers.kvark_momentum import KVARKMomentumFilter
+from kvark_ros.core.estimation.observers.kvark import KVARKMomentumFilter
 from kvark_ros.core.estimation.observers.momentum_observers import joseph_update
 from kvark_ros.core.estimation.observers.onset import OnsetDetector
+from kvark_ros.core.estimation.observers.variants import NIS_SCALE_BOUNDS, VARIANTS
 from kvark_ros.core.estimation.observers.window_vb import WINDOW_MAX_RATIO, WINDOW_SNAPSHOTS, WindowVB
-from kvark_ros.core.estimation.step_kernel import ONSET_EVIDENCE
+
+from reference_estimator import ReferenceEstimator, reference_predict
 
 
 class ReferenceWindowVB(WindowVB):
@@ -156,7 +158,7 @@ class ReferenceOnsetDetector(OnsetDetector):
 
 
 class ReferenceMomentumFilter(KVARKMomentumFilter):
-    """``KVARKMomentumFilter`` with the numpy step (kvark_momentum.py's docstring): the kernel's oracle."""
+    """``KVARKMomentumFilter`` with the numpy step (observers/kvark.py's docstring): the kernel's oracle."""
 
     def _make_window(self, prior_density: np.ndarray, window: int, forgetting: float, prior_dof: float,
                      twin: bool) -> WindowVB:
@@ -175,7 +177,7 @@ class ReferenceMomentumFilter(KVARKMomentumFilter):
         if window is not None and window.twin and window.twin_p is None:     # the twin starts as the filter
             window.twin_p, window.twin_tau, window.twin_a, window.twin_b, window.twin_c = (
                 self.p_hat, self.tau, self.a, self.b, self.c)
-        mu, var_star = self.residual.predict(qd, q, g) if self.needs else self.residual.predict(qd)  # 22-23
+        mu, var_star = reference_predict(self.residual, qd, q, g)     # eqs. 22-23
         self.prediction = mu, var_star
         tau_pred = self.tau                                             # eq. 41
         p_pred = self.p_hat + dt * (u_prev - mu + tau_pred)              # eq. 28 as the momentum model
@@ -322,10 +324,10 @@ def reference_observer(name: str, trained: TrainedModel, settings: FilterSetting
 
 
 def reference_estimator(config: EstimatorConfig, trained: TrainedModel | None = None, observer: str | None = None,
-                        urdf: str | None = None, oracle: ResidualPredictor | None = None) -> Estimator:
-    """``Estimator.from_config``'s estimator, with a momentum-form K-VARK filter replaced by its reference: the whole
-    step then runs as the Estimator's numpy code (``compiled`` False). Other observers: ``from_config``'s as it is."""
+                        urdf: str | None = None, oracle: ResidualPredictor | None = None) -> ReferenceEstimator:
+    """``Estimator.from_config``'s estimator as a ``ReferenceEstimator`` (its whole step numpy), with a momentum-form
+    K-VARK filter replaced by its reference; other observers as they are."""
     built = Estimator.from_config(config, trained, observer, urdf, oracle)
-    if not isinstance(built.observer, KVARKMomentumFilter):
-        return built
-    return Estimator(config, built.robot, reference_of(built.observer), built.trained)
+    filtered = built.observer
+    return ReferenceEstimator(config, built.robot, reference_of(filtered) if isinstance(filtered, KVARKMomentumFilter)
+                              else filtered, built.trained)

@@ -1,6 +1,7 @@
-"""The compiled step against the numpy reference (reference_filter.py), on the committed bags and at rest.
+"""The compiled step against the numpy references (reference_filter.py, reference_estimator.py), on the committed
+bags and at rest, for every observer.
 
-The kernels (``core/estimation/step_kernel.py``) do the reference's arithmetic in the same order, but sums run in
+The kernels (``core/estimation/compiled``) do the reference's arithmetic in the same order, but sums run in
 another order than BLAS's, ``exp`` is libm's rather than numpy's and the Cholesky factors are the kernel's rather than
 LAPACK's: measured on the bags, τ̂, P, F and Σ_F differ by at most 1.5e-14 of each one's largest value over the bag
 (1.6e-13 on the UR5's bench stream, whose heavier links give larger momenta, the rounding of which τ̂ differentiates).
@@ -16,7 +17,7 @@ from __future__ import annotations
 import ast
 import builtins
 import enum
-import hashlib
+import math
 import os
 import subprocess
 import sys
@@ -27,25 +28,25 @@ import numba
 import numpy as np
 import pytest
 
-from kvark_ros.core.estimation import input_kernels, kernel_layouts, model_kernels, step_kernel
+from kvark_ros.core.config import load_config
+from kvark_ros.core.estimation import compiled
 from kvark_ros.core.estimation.augmentation import parse_augmentation
 from kvark_ros.core.estimation.calibration import IntervalScale
-from kvark_ros.core.estimation.compiled_step import augmentation_entries
-from kvark_ros.core.config import load_config
+from kvark_ros.core.estimation.compiled import inputs as input_kernels
+from kvark_ros.core.estimation.compiled import jit, kvark_filter, layouts, post, residual, wrench
+from kvark_ros.core.estimation.compiled.residual import augmentation_torque, kmp_predict, pack_augmentation
 from kvark_ros.core.estimation.estimator import Estimator, Status
-from kvark_ros.core.estimation.model_kernels import augmentation_torque, kmp_predict_pose
 from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.core.estimation.observers import make_observer
-from kvark_ros.core.estimation.observers.kvark_filter import KVARKFilter
-from kvark_ros.core.estimation.observers.kvark_kernel import KVARKKernelFilter, pose_arguments
-from kvark_ros.core.estimation.observers.kvark_momentum import KVARKMomentumFilter
-from kvark_ros.core.estimation.residual.common import VARIANCE_FLOOR
+from kvark_ros.core.estimation.observers.kvark import KVARKFilter, KVARKMomentumFilter
+from kvark_ros.core.estimation.observers.kvark_difference import KVARKDifferenceFilter
 from kvark_ros.core.learning.kmp_inputs import fit_kmp, second_inputs
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.estimation.stiction import StictionBand
 from kvark_ros.core.learning.training import training_data
 from kvark_ros.io.alignment import read_inputs
 
+from reference_estimator import ReferenceEstimator
 from reference_filter import ReferenceMomentumFilter, reference_estimator
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -129,7 +130,7 @@ def _assert_states_close(reference: dict, kernel: dict, relative: float = RELATI
 def _pair(config, trained, observer: str = "kvark") -> tuple[Estimator, Estimator]:
     reference = reference_estimator(config, trained, observer)
     kernel = Estimator.from_config(config, trained, observer)
-    assert reference.compiled is False and kernel.compiled is True
+    assert type(reference) is ReferenceEstimator and type(kernel) is Estimator
     return reference, kernel
 
 
@@ -138,7 +139,7 @@ def test_kernel_matches_the_numpy_reference_on_the_bags(config, trained, inputs,
     """Default kvark (window VB, onset detector, KMP inside the kernel): every estimate, the onset alarms, the last
     contact statistic and collision excess, and the final filter state."""
     reference, kernel = _pair(config, trained)
-    assert type(reference.observer) is ReferenceMomentumFilter and type(kernel.observer) is KVARKKernelFilter
+    assert type(reference.observer) is ReferenceMomentumFilter and type(kernel.observer) is KVARKFilter
     _assert_equal_to_rounding(_run(reference, inputs[bag]), _run(kernel, inputs[bag]))
     assert kernel.observer.onset.alarms == reference.observer.onset.alarms > 0
     assert kernel.counts == reference.counts
@@ -171,32 +172,36 @@ def posed(config, trained, inputs):
     return replace(trained, residual=kmp, augmentation=parse_augmentation(AUGMENTATION, config.joint_names))
 
 
-def test_the_model_kernels_equal_their_references(posed, inputs):
-    """``kmp_predict_pose`` and ``augmentation_torque`` against ``KMPResidualModel.predict`` and
-    ``Augmentation.joint_torque`` on the bag's samples and 1 rad(/s) away from them: the means and τ_aug to 1e-12 N·m
-    (measured 1e-14), the variances to 1e-10 relative (measured 2e-12: σ_f² − ‖W e‖² cancels digits near the data)."""
-    kmp, augmentation = posed.residual, posed.augmentation
-    pose, entries = pose_arguments(kmp), augmentation_entries(augmentation)
+@pytest.mark.parametrize("model", ["trained", "posed"])
+def test_the_model_kernels_equal_their_references(model, inputs, request):
+    """``kmp_predict`` (a q̇-only KMP and one with second inputs) and ``augmentation_torque`` against the numpy
+    ``KMPResidualModel.predict_batch`` and ``Augmentation.joint_torque`` on the bag's samples and 1 rad(/s) away from
+    them: the means and τ_aug to 1e-12 N·m (measured 1e-14), the variances to 1e-10 relative (measured 2e-12:
+    σ_f² − ‖W e‖² cancels digits near the data)."""
+    kmp = request.getfixturevalue(model).residual
+    augmentation = request.getfixturevalue("posed").augmentation
+    packed, entries = kmp.compiled.packed, pack_augmentation(augmentation)
     data, rng = inputs["panda_collision"], np.random.default_rng(4)
     mean, var, torque = np.empty(7), np.empty(7), np.empty(7)
     for k in range(0, len(data.stamp), 25):
         q, qd = data.q[k] + rng.normal(scale=0.5, size=7), data.qd[k] + rng.normal(scale=0.5, size=7)
         g = rng.normal(scale=10.0, size=7)
-        kmp_predict_pose(qd, q, g, *pose, VARIANCE_FLOOR, mean, var)
-        reference_mean, reference_var = kmp.predict(qd, q, g)
+        kmp_predict(qd, q, g, packed, mean, var)
+        reference_mean, reference_var = (values[0] for values in kmp.predict_batch(qd[None], q[None], g[None]))
         assert np.abs(mean - reference_mean).max() < 1e-12
         assert np.abs(var / reference_var - 1.0).max() < 1e-10
-        augmentation_torque(q, qd, data.tau_m[k], *entries, torque)
+        assert all(np.array_equal(a, b) for a, b in zip(kmp.predict(qd, q, g), (mean, var)))
+        augmentation_torque(q, qd, data.tau_m[k], entries, torque)
         assert np.abs(torque - augmentation.joint_torque(q, qd, data.tau_m[k])).max() < 1e-12
 
 
 def test_pose_inputs_and_the_augmentation_are_compiled(config, posed, inputs):
-    """A KMP with second inputs and a model augmentation run compiled (``core.estimation.model_kernels``): the same
+    """A KMP with second inputs and a model augmentation run compiled (``compiled.residual``): the same
     estimates as the reference on the collision bag, and the same final state to 1e-10 of each array's largest entry:
     the two-input variances differ by ~2e-12 relative (the test above), which the onset detector's running sums carry
     to 4e-12 of their size (measured), beyond RELATIVE's 1e-12 but 25 × inside this bound."""
     reference, kernel = _pair(config, posed)
-    assert kernel.observer._pose is not None and kernel._compiled._aug_arguments is not None
+    assert kernel.observer.kmp is not None and kernel.robot.augmentation.torque_effects
     _assert_equal_to_rounding(_run(reference, inputs["panda_collision"]), _run(kernel, inputs["panda_collision"]))
     _assert_states_close(reference.observer.state(), kernel.observer.state(), relative=1e-10)
 
@@ -337,12 +342,59 @@ def test_estimates_are_snapshots(config, trained, inputs):
     assert not any(np.shares_memory(getattr(first, a), getattr(second, b)) for a in FIELDS for b in FIELDS)
 
 
-def test_the_difference_form_runs_the_numpy_filter(config, trained):
-    """The difference form has no kernel: it is the numpy KVARKFilter, stepped by the numpy estimator."""
+OTHER_OBSERVERS = ("momentum", "kfmo", "sh_akfmo", "vbkfmo_q", "eso")
+
+
+@pytest.mark.parametrize("name", OTHER_OBSERVERS)
+def test_every_observer_gets_the_compiled_post_step(config, trained, inputs, name):
+    """The residual-free observers (no covariance for momentum and eso: the contact test adds the trained KMP's
+    μ_r² + σ²_r, the collision test takes σ = 0 without it) step in numpy between the compiled step's two calls; every
+    estimate equals the reference's numpy post-step to rounding, with a static band and interval factors (which
+    apply to kvark only) in the model."""
+    banded = replace(trained, stiction=StictionBand(np.full(7, 2.0)),
+                     interval_scale=IntervalScale(FACTORS, np.linspace(0.0, 0.05, 7)))
+    reference, kernel = _pair(replace(config, wrench=replace(config.wrench, frame="end_effector")), banded, name)
+    runs = _run(reference, inputs["panda_collision"]), _run(kernel, inputs["panda_collision"])
+    for field in ("tau_cov", "wrench_cov"):
+        covariances = {getattr(e, field) is None for run in runs for e in run if e is not None}
+        assert covariances == {not kernel.observer.reports_covariance}
+    if kernel.observer.reports_covariance:
+        _assert_equal_to_rounding(*runs)
+    else:
+        _assert_equal_to_rounding([_without_covariance(e) for e in runs[0]], [_without_covariance(e) for e in runs[1]])
+    assert kernel.contact.invalid_covariances == reference.contact.invalid_covariances == 0
+    assert kernel.contact.statistic == pytest.approx(reference.contact.statistic, rel=RELATIVE)
+    assert kernel.collision.excess == pytest.approx(reference.collision.excess, rel=RELATIVE)
+
+
+def test_an_observer_without_covariance_or_residual_is_not_tested_for_contact(config, inputs):
+    """Without a trained model the contact test has no S for ``momentum`` (no P, no residual): its flag stays as it
+    was, nothing is counted invalid, and the collision excess is max_j |τ̂_j| (σ = 0)."""
+    robot = RobotModel.from_config(config)
+    kernel = Estimator(config, robot, make_observer("momentum", load_model(config.model_dir, config.joint_names),
+                                                    config.filter))
+    estimates = [e for e in _run(kernel, inputs["panda_collision"]) if e is not None]
+    assert not any(e.contact for e in estimates) and kernel.contact.invalid_covariances == 0
+    assert math.isnan(kernel.contact.statistic)
+    assert kernel.collision.excess == pytest.approx(float(np.abs(estimates[-1].tau_ext).max()), rel=1e-15)
+
+
+def test_the_difference_form_gets_the_compiled_post_step_of_a_full_covariance(config, trained, inputs):
+    """The difference form is the numpy ``KVARKDifferenceFilter`` (its VB couples the joints: P is full); the compiled
+    post-step takes its full P (scaled by the interval factors: it reports as kvark) and equals the reference's."""
     settings = replace(config.filter, measurement="difference", vb_variant="paper")
-    assert type(make_observer("kvark", trained, settings)) is KVARKFilter
-    estimator = Estimator.from_config(replace(config, filter=settings), trained, "kvark")
-    assert estimator.compiled is False
+    assert type(make_observer("kvark", trained, settings)) is KVARKDifferenceFilter
+    banded = replace(trained, stiction=StictionBand(np.full(7, 2.0)),
+                     interval_scale=IntervalScale(FACTORS, np.linspace(0.0, 0.05, 7)))
+    reference, kernel = _pair(replace(config, filter=settings), banded)
+    runs = _run(reference, inputs["panda_collision"]), _run(kernel, inputs["panda_collision"])
+    last = next(e for e in reversed(runs[1]) if e is not None)
+    assert np.abs(last.tau_cov - np.diag(np.diagonal(last.tau_cov))).max() > 0.0      # P is full
+    _assert_equal_to_rounding(*runs)
+
+
+def _without_covariance(estimate):
+    return None if estimate is None else estimate._replace(tau_cov=np.zeros(1), wrench_cov=np.zeros(1))
 
 
 @pytest.mark.parametrize("name", ["kvark", "kf", "kmp_kf", "kmp_kf_ewma", "kmp_kf_nis", "gmr_gp"])
@@ -350,57 +402,59 @@ def test_the_momentum_form_is_only_ever_the_compiled_filter(config, trained, nam
     """make_observer builds every momentum-form K-VARK filter compiled; the base class, which holds the settings
     and state but has no step, cannot be built at all."""
     observer = make_observer(name, trained, config.filter)
-    assert type(observer) is KVARKKernelFilter
+    assert type(observer) is KVARKFilter
     with pytest.raises(TypeError, match="abstract"):
         KVARKMomentumFilter("kvark", observer.residual, observer.tuning, observer.noise, config.filter)
+
+
+KERNEL_MODULES = (input_kernels, residual, kvark_filter, wrench, post)
 
 
 @pytest.mark.parametrize("model", ["trained", "posed"])
 def test_nothing_compiles_after_construction(config, inputs, model, request):
     """The kernels compile (or load from the cache) when the estimator is built, never while it steps."""
     kernel = Estimator.from_config(config, request.getfixturevalue(model), "kvark")
-    dispatchers = [value for module in (step_kernel, model_kernels, input_kernels) for value in vars(module).values()
+    dispatchers = [value for module in KERNEL_MODULES for value in vars(module).values()
                    if isinstance(value, numba.core.dispatcher.Dispatcher)]
     before = {dispatcher: len(dispatcher.signatures) for dispatcher in dispatchers}
     _run(kernel, inputs["panda_contact"])
     assert {dispatcher: len(dispatcher.signatures) for dispatcher in dispatchers} == before
 
 
-@pytest.mark.parametrize("module, count", [(step_kernel, 9), (model_kernels, 2), (input_kernels, 2)])
-def test_the_kernels_depend_on_no_other_module(module, count):
-    """numba's cache is keyed on a kernel's own file alone, so every global its compiled functions read is defined in
-    that file (or is numba, numpy, math or a builtin), or is a layout of ``kernel_layouts`` (an enum whose members the
-    kernels read as constants) whose file the kernel's file pins by ``LAYOUTS_DIGEST``: no other module's function or
-    constant can go stale in the cache. A file without ``LAYOUTS_DIGEST`` may read no layout."""
-    pinned = hasattr(module, "LAYOUTS_DIGEST")
-    digest = hashlib.sha256(Path(kernel_layouts.__file__).read_bytes()).hexdigest()
-    assert not pinned or module.LAYOUTS_DIGEST == digest, (
-        f"core/estimation/kernel_layouts.py changed: set LAYOUTS_DIGEST in {Path(module.__file__).name} to its sha256")
-    tree = ast.parse(Path(module.__file__).read_text())
-    defined = {node.name for node in tree.body if isinstance(node, (ast.FunctionDef, ast.ClassDef))}
-    defined |= {target.id for node in tree.body if isinstance(node, ast.Assign) for target in ast.walk(node)
-                if isinstance(target, ast.Name) and isinstance(target.ctx, ast.Store)}
-    layouts = {name for name, value in vars(kernel_layouts).items() if isinstance(value, enum.EnumMeta)
-               and value.__module__ == kernel_layouts.__name__}
-    layouts |= {name for name, value in vars(kernel_layouts).items() if name.isupper() and isinstance(value, int)}
-    layouts = layouts if pinned else set()
-    allowed = defined | layouts | {"np", "math", "numba"} | set(vars(builtins))
-    kernels = [value for value in vars(module).values() if isinstance(value, numba.core.dispatcher.Dispatcher)
-               and value.py_func.__module__ == module.__name__]
-    assert len(kernels) >= count
-    for kernel in kernels:
-        code = kernel.py_func.__code__
-        read = {name for name in code.co_names if name in vars(module) or name in vars(builtins)}
-        assert read <= allowed, (code.co_name, read - allowed)
-        for name in read & layouts:
-            value = vars(module)[name]
-            assert value is getattr(kernel_layouts, name), (code.co_name, name)
+def test_every_kernel_file_pins_what_its_kernels_read():
+    """numba's cache is keyed on a kernel's own file alone (``compiled.jit``), so every global a kernel reads is
+    defined in its file (or is numba, numpy, math or a builtin), or comes from a file its ``PINS`` name with that
+    file's current sha256: a layout of ``layouts`` (an enum whose members the kernels read as constants) or a kernel
+    of another kernel file. No other module's function or constant can go stale in the cache."""
+    here = Path(compiled.__file__).parent
+    files = sorted(path.name for path in here.glob("*.py") if "@jit" in path.read_text())
+    assert files == sorted(f"{module.__name__.rsplit('.', 1)[1]}.py" for module in KERNEL_MODULES)
+    stale = {module.__name__: {name: jit.digest(name) for name in module.PINS if module.PINS[name] != jit.digest(name)}
+             for module in KERNEL_MODULES}
+    assert not any(stale.values()), f"update PINS to these digests: {stale}"
+    for module in KERNEL_MODULES:
+        pinned = [vars(compiled)[name[:-3]] if name != "layouts.py" else layouts for name in module.PINS]
+        tree = ast.parse(Path(module.__file__).read_text())
+        defined = {node.name for node in tree.body if isinstance(node, (ast.FunctionDef, ast.ClassDef))}
+        defined |= {target.id for node in tree.body if isinstance(node, (ast.Assign, ast.AnnAssign))
+                    for target in ast.walk(node) if isinstance(target, ast.Name) and isinstance(target.ctx, ast.Store)}
+        allowed = {"np", "math", "numba"} | set(vars(builtins))
+        kernels = [value for value in vars(module).values() if isinstance(value, numba.core.dispatcher.Dispatcher)
+                   and value.py_func.__module__ == module.__name__]
+        assert kernels, module.__name__
+        for kernel in kernels:
+            read = {name for name in kernel.py_func.__code__.co_names if name in vars(module)}
+            for name in read - defined - allowed:
+                value = vars(module)[name]
+                source = next((other for other in pinned if getattr(other, name, None) is value), None)
+                assert source is not None, (module.__name__, kernel.py_func.__name__, name)
+                assert isinstance(value, (numba.core.dispatcher.Dispatcher, enum.EnumMeta, int)), (name, value)
 
 
 def test_kernels_import_without_a_writable_cache():
     """With no cache directory numba can use (here: only the zip-file locator, which applies to none of our files)
     the kernels compile without the cache instead of failing at import."""
     environment = dict(os.environ, NUMBA_CACHE_LOCATOR_CLASSES="ZipCacheLocator")
-    code = ("from kvark_ros.core.estimation import step_kernel\n"
-            "assert type(step_kernel.estimate_step._cache).__name__ == 'NullCache'\n")
+    code = ("from kvark_ros.core.estimation.compiled import post\n"
+            "assert type(post.estimate_step._cache).__name__ == 'NullCache'\n")
     subprocess.run([sys.executable, "-c", code], check=True, env=environment, cwd=ROOT, timeout=120)

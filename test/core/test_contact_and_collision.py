@@ -14,11 +14,21 @@ from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.io import read_run
 from kvark_ros.io.alignment import estimator_inputs
 from kvark_ros.tools.metrics import SETTLE, contact_metrics
-from kvark_ros.core.estimation.contact import CollisionDetector, ContactDetector, contact_covariance
+from kvark_ros.core.estimation.contact import CollisionDetector, ContactDetector
+from reference_estimator import chi_square_statistic, collision_excess, contact_covariance
 
 ROOT = Path(__file__).resolve().parents[2]
 AFTER_CONTACT = 0.2      # s after the last pushed sample before motion counts as contact-free again
 PUSHED = 0.5             # N·m: a true external torque above this on any joint is contact
+
+
+def _contact(detector: ContactDetector, stamp: float, tau: np.ndarray, covariance: np.ndarray) -> bool:
+    """One sample's debounced flag from τ̂ and S (the statistic as the post-step computes it, reference_estimator)."""
+    return detector.decide(stamp, chi_square_statistic(tau, covariance))
+
+
+def _collision(detector: CollisionDetector, tau: np.ndarray, covariance: np.ndarray | None) -> bool:
+    return detector.decide(collision_excess(tau, covariance, detector.z))
 
 
 def test_contact_threshold_and_debounce():
@@ -26,21 +36,21 @@ def test_contact_threshold_and_debounce():
     assert detector.threshold == pytest.approx(chi2.ppf(0.99, 7))
     cov = np.eye(7)
     quiet, loud = np.zeros(7), np.full(7, 3.0)           # statistic 0 and 63
-    flags = [detector.update(0.002 * k, loud if 10 <= k < 40 else quiet, cov) for k in range(60)]
+    flags = [_contact(detector, 0.002 * k, loud if 10 <= k < 40 else quiet, cov) for k in range(60)]
     rises, falls = flags.index(True), 40 + flags[40:].index(False)
     assert 0.002 * (rises - 10) == pytest.approx(0.02) and 0.002 * (falls - 40) == pytest.approx(0.02)
     assert all(flags[rises:falls]) and not any(flags[:rises]) and not any(flags[falls:])
-    brief = [detector.update(1.0 + 0.002 * k, loud if k < 5 else quiet, cov) for k in range(20)]
+    brief = [_contact(detector, 1.0 + 0.002 * k, loud if k < 5 else quiet, cov) for k in range(20)]
     assert not any(brief), "shorter than the debounce: no flag"
     detector.configure(0.99, 0.0)
-    assert detector.update(2.0, loud, cov) and not detector.update(2.002, quiet, cov)
+    assert _contact(detector, 2.0, loud, cov) and not _contact(detector, 2.002, quiet, cov)
 
 
 def test_contact_invalid_covariance_holds_the_flag():
     detector = ContactDetector(2, 0.9, 0.0)
-    assert detector.update(0.0, np.array([5.0, 0.0]), np.eye(2))
-    assert detector.update(0.002, np.zeros(2), np.array([[1.0, 2.0], [2.0, 1.0]]))        # indefinite
-    assert detector.update(0.004, np.zeros(2), np.full((2, 2), np.nan))
+    assert _contact(detector, 0.0, np.array([5.0, 0.0]), np.eye(2))
+    assert _contact(detector, 0.002, np.zeros(2), np.array([[1.0, 2.0], [2.0, 1.0]]))        # indefinite
+    assert _contact(detector, 0.004, np.zeros(2), np.full((2, 2), np.nan))
     assert detector.invalid_covariances == 2
 
 
@@ -57,15 +67,15 @@ def test_collision_flag_is_per_joint_beyond_the_interval_and_not_debounced():
     detector = CollisionDetector(0.99, 10.0)
     assert detector.z == pytest.approx(norm.ppf(0.995))
     S = np.diag([1.0, 4.0])
-    assert not detector.update(np.array([0.0, 15.0]), S)
+    assert not _collision(detector, np.array([0.0, 15.0]), S)
     assert detector.excess == pytest.approx(15.0 - 2 * detector.z)
-    assert detector.update(np.array([0.0, -15.5]), S), "raised on the first sample: no debounce"
-    assert not detector.update(np.array([12.0, 0.0]), S), "cleared on the first sample below"
-    assert detector.update(np.array([12.6, 0.0]), S)
-    assert detector.update(np.zeros(2), np.full((2, 2), np.nan)), "a non-finite S holds the flag"
-    assert not detector.update(np.array([9.9, 0.0]), None), "without S: σ = 0"
+    assert _collision(detector, np.array([0.0, -15.5]), S), "raised on the first sample: no debounce"
+    assert not _collision(detector, np.array([12.0, 0.0]), S), "cleared on the first sample below"
+    assert _collision(detector, np.array([12.6, 0.0]), S)
+    assert _collision(detector, np.zeros(2), np.full((2, 2), np.nan)), "a non-finite S holds the flag"
+    assert not _collision(detector, np.array([9.9, 0.0]), None), "without S: σ = 0"
     detector.configure(0.5, 1.0)
-    assert detector.z == pytest.approx(norm.ppf(0.75)) and detector.update(np.array([2.0, 0.0]), None)
+    assert detector.z == pytest.approx(norm.ppf(0.75)) and _collision(detector, np.array([2.0, 0.0]), None)
     with pytest.raises(ValueError):
         detector.configure(0.99, 0.0)
 

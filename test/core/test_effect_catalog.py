@@ -8,9 +8,8 @@ import pytest
 from kvark_ros.core import effect_catalog as catalog
 from kvark_ros.core.estimation import augmentation
 from kvark_ros.core.estimation.augmentation import Augmentation, TorqueEffect, joint_columns
-from kvark_ros.core.estimation.compiled_step import EFFECT_CODES, augmentation_entries
-from kvark_ros.core.estimation.kernel_layouts import Effect
-from kvark_ros.core.estimation.model_kernels import augmentation_torque
+from kvark_ros.core.estimation.compiled.layouts import Effect
+from kvark_ros.core.estimation.compiled.residual import EFFECT_CODES, augmentation_torque, pack_augmentation
 from kvark_ros.core.learning import static_band
 from kvark_ros.gap import effects
 from kvark_ros.gap.effects import Priors, Term, variants
@@ -134,11 +133,11 @@ def test_every_torque_effect_has_its_columns_and_its_compiled_branch(name):
         theta = rng.uniform(-1.0, 1.0, (len(joints), len(entry.parameters)))
         aug = Augmentation("test", ("a", "b", "c"), (name,), None, None, np.zeros(n), np.zeros(n),
                            (TorqueEffect(name, joints, variant, theta),), "", "")
-        entries = augmentation_entries(aug)
+        packed = pack_augmentation(aug)
         out = np.empty(n)
         for _ in range(20):
             q, qd, tau_m = _samples(rng, (n,))
-            augmentation_torque(q, qd, tau_m, *entries, out)
+            augmentation_torque(q, qd, tau_m, packed, out)
             np.testing.assert_allclose(out, aug.joint_torque(q, qd, tau_m), rtol=0.0, atol=1e-12, err_msg=name)
             assert np.any(out[joints] != 0.0) and out[1] == 0.0
 

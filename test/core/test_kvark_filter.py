@@ -1,6 +1,6 @@
 """K-VARK and its ablations: equations, convergence on a synthetic arm, long-run health of P.
 
-The momentum form's equations run in both its implementations: the compiled filter (``KVARKKernelFilter``, the
+The momentum form's equations run in both its implementations: the compiled filter (``KVARKFilter``, the
 production step) and the numpy reference (``ReferenceMomentumFilter``, reference_filter.py)."""
 from __future__ import annotations
 
@@ -13,9 +13,10 @@ import pytest
 from kvark_ros.core.estimation.estimator import Estimator
 from kvark_ros.core.observer_catalog import OBSERVERS
 from kvark_ros.core.estimation.observers import OBSERVER_NAMES, FilterTuning, ObserverError, make_observer
-from kvark_ros.core.estimation.kernel_layouts import Option
-from kvark_ros.core.estimation.observers.kvark_filter import VARIANTS, KVARKFilter, Variant, kalman_update
-from kvark_ros.core.estimation.observers.kvark_kernel import KVARKKernelFilter
+from kvark_ros.core.estimation.compiled.layouts import Option
+from kvark_ros.core.estimation.observers.kvark import KVARKFilter
+from kvark_ros.core.estimation.observers.kvark_difference import KVARKDifferenceFilter, kalman_update
+from kvark_ros.core.estimation.observers.variants import VARIANTS, Variant
 from kvark_ros.core.estimation.observers.momentum_noise import MomentumNoise
 from kvark_ros.core.estimation.residual import GMRReference, KMPHyperparameters, KMPResidualModel
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream
@@ -24,7 +25,7 @@ from reference_filter import ReferenceMomentumFilter
 
 STEP = np.array([3.0, -2.0, 1.5, 2.0, -1.0, 0.8, 0.5])    # N·m, switched on at t = 2 s
 # The momentum form's two implementations: the compiled one (production) and the numpy reference (the oracle).
-MOMENTUM_FORMS = {"kernel": KVARKKernelFilter, "reference": ReferenceMomentumFilter}
+MOMENTUM_FORMS = {"kernel": KVARKFilter, "reference": ReferenceMomentumFilter}
 
 
 def flat_residual(n: int, variance: float = 0.01) -> KMPResidualModel:
@@ -56,7 +57,7 @@ def test_kalman_update_matches_textbook_equations(rng):
 def test_virtual_measurement_sign_gives_torque_acting_on_the_robot(panda_config):
     """ṗ = u + τ_ext (our sign): a momentum growing faster than u means positive τ_ext."""
     residual = flat_residual(7)
-    observer = KVARKFilter("kf", residual, tuning(7), panda_config.filter)
+    observer = KVARKDifferenceFilter("kf", residual, tuning(7), panda_config.filter)
     dt, tau_ext = 0.002, np.linspace(-1, 1, 7)
     p_prev, u_prev = np.zeros(7), np.full(7, 0.3)
     for _ in range(2000):
@@ -103,7 +104,7 @@ def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_confi
                                                                      steps, form):
     config = replace(panda_config.filter, measurement=measurement, vb_variant=vb_variant)
     if measurement == "difference":
-        observer = KVARKFilter("kvark", flat_residual(7), tuning(7), config)
+        observer = KVARKDifferenceFilter("kvark", flat_residual(7), tuning(7), config)
     else:
         tuned = replace(tuning(7), residual_variance=np.full(7, 0.01))
         observer = MOMENTUM_FORMS[form]("kvark", flat_residual(7), tuned, MomentumNoise.default(7), config)
@@ -122,7 +123,7 @@ def test_covariance_stays_symmetric_positive_definite_over_long_runs(panda_confi
 
 
 def test_vb_process_noise_grows_when_the_external_torque_jumps(panda_config):
-    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), replace(panda_config.filter, vb_variant="paper"))
+    observer = KVARKDifferenceFilter("kvark", flat_residual(7), tuning(7), replace(panda_config.filter, vb_variant="paper"))
     p_prev, u = np.zeros(7), np.zeros(7)
     for _ in range(500):
         observer.step(0.002, np.zeros(7), p_prev, p_prev, u)
@@ -138,14 +139,14 @@ def test_heteroscedastic_variants_trust_the_measurement_less_where_kmp_is_unsure
     config = replace(panda_config.filter, initial_covariance=0.01)
     gains = {}
     for speed in (0.0, 50.0):
-        observer = KVARKFilter("kmp_kf", residual, tuning(7), config)
+        observer = KVARKDifferenceFilter("kmp_kf", residual, tuning(7), config)
         x, _ = observer.step(0.002, np.full(7, speed), np.full(7, 0.002), np.zeros(7), np.zeros(7))
         gains[speed] = x[0]            # measurement is 1 N·m, prior 0: the estimate is the gain
     assert gains[50.0] < 0.5 * gains[0.0]
 
 
 def test_reset_restores_the_initial_state(panda_config):
-    observer = KVARKFilter("kvark", flat_residual(7), tuning(7), replace(panda_config.filter, vb_variant="paper"))
+    observer = KVARKDifferenceFilter("kvark", flat_residual(7), tuning(7), replace(panda_config.filter, vb_variant="paper"))
     observer.step(0.002, np.ones(7), np.ones(7), np.zeros(7), np.zeros(7))
     observer.reset()
     assert np.array_equal(observer.x, np.zeros(7))
@@ -154,7 +155,7 @@ def test_reset_restores_the_initial_state(panda_config):
 
 def test_unknown_observer_is_refused(panda_config):
     with pytest.raises(ValueError, match="unknown K-VARK variant 'nope'"):
-        KVARKFilter("nope", flat_residual(7), tuning(7), panda_config.filter)
+        KVARKDifferenceFilter("nope", flat_residual(7), tuning(7), panda_config.filter)
 
 
 def test_smoothed_vb_statistic_equals_the_matrix_rts_smoother(panda_config, rng):

@@ -101,7 +101,7 @@ def test_reloading_during_a_collision_changes_no_output(config, trained, inputs,
 def test_difference_form_kvark_continues_exactly(trained, inputs):
     config = load_config(CONFIG, filter__measurement="difference", filter__vb_variant="paper")
     new = _check_reload(config, trained, inputs, "kvark")
-    assert type(new.observer).__name__ == "KVARKFilter"
+    assert type(new.observer).__name__ == "KVARKDifferenceFilter"
 
 
 def test_another_observer_is_refused(config, trained, inputs):

@@ -2,10 +2,13 @@
 fresh sample's step spans both periods (docs/method.md §4.8): the estimates equal those without the repeat."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from kvark_ros.core.estimation.estimator import Estimator, Status
-from kvark_ros.core.estimation.input_kernels import STALE_MOTION, repeated_sample
+from kvark_ros.core.estimation.compiled.inputs import (ACCEPTED, NON_FINITE, NOT_INCREASING, REPEATED, STALE_MOTION,
+                                                       check_sample)
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream
 
 
@@ -35,11 +38,27 @@ def test_a_repeat_at_rest_is_a_sample():
     small for q to show (below STALE_MOTION in the period) is not."""
     q, tau = np.array([0.1, -0.5, 0.0, -2.0, 0.0, 1.5, 0.8]), np.ones(7)
     last = np.full((3, 7), np.nan)
-    assert not repeated_sample(0.002, q, np.zeros(7), tau, last)          # first: remembered
-    assert not repeated_sample(0.002, q, np.zeros(7), tau, last)          # at rest
+
+    def check(stamp: float, previous: float, qd: np.ndarray) -> int:
+        return check_sample(stamp, previous, q, qd, tau, last)
+
+    assert check(0.0, math.nan, np.zeros(7)) == ACCEPTED                     # first: remembered
+    assert check(0.002, 0.0, np.zeros(7)) == ACCEPTED                        # at rest
     moving = np.full(7, 0.1)
-    assert not repeated_sample(0.002, q, moving, tau, last)               # q̇ changed: fresh
-    assert repeated_sample(0.002, q, moving, tau, last)                   # the same while moving: stale
+    assert check(0.004, 0.002, moving) == ACCEPTED                           # q̇ changed: fresh
+    assert check(0.006, 0.004, moving) == REPEATED                           # the same while moving: stale
     creeping = np.full(7, 0.5 * STALE_MOTION / 0.002)
-    assert not repeated_sample(0.002, q, creeping, tau, last)
-    assert not repeated_sample(0.002, q, creeping, tau, last)
+    assert check(0.008, 0.006, creeping) == ACCEPTED
+    assert check(0.010, 0.008, creeping) == ACCEPTED
+
+
+def test_the_input_check_refuses_what_cannot_be_estimated():
+    """A NaN, an Inf or a value whose square overflows is NON_FINITE; a stamp at or before the previous one is
+    NOT_INCREASING (checked before a repeat); neither is remembered for the next check."""
+    q, qd, tau, last = np.zeros(7), np.full(7, 0.1), np.ones(7), np.full((3, 7), np.nan)
+    assert check_sample(1.0, math.nan, q, qd, tau, last) == ACCEPTED
+    for bad in (np.nan, np.inf, 1e155):
+        assert check_sample(1.002, 1.0, np.full(7, bad), qd, tau, last) == NON_FINITE
+    assert check_sample(1.0, 1.0, q, qd, tau, last) == NOT_INCREASING
+    assert check_sample(0.9, 1.0, q, qd + 1.0, tau, last) == NOT_INCREASING
+    np.testing.assert_array_equal(last, [q, qd, tau])

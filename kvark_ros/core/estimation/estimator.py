@@ -1,14 +1,12 @@
 """The estimator: robot model + observer, one call per sample.
 
 The same object runs behind the ROS node and the bag replay, so live and offline results
-are identical for identical inputs. Per sample: the observer's τ̂_ext, minus the tare offset
-(``kvark_ros.core.estimation.tare``), mapped to the wrench and tested for contact and collision
-(``kvark_ros.core.estimation.contact``). At run time the payload (``set_payload``), the tare
-(``start_tare``/``clear_tare``) and the run-time config keys (``configure``) may change between
-two samples; the filter continues.
-
-With a momentum-form K-VARK filter (a ``KVARKKernelFilter``) everything of a step but the pinocchio passes runs as one
-compiled kernel (``kvark_ros.core.estimation.step_kernel``); the numpy code below is the reference it is tested against.
+are identical for identical inputs. Per sample: the input checks (``compiled.inputs``), the pinocchio
+passes, then the compiled step (``compiled.step.CompiledStep``): the observer's τ̂_ext and covariance, minus the
+tare offset (``kvark_ros.core.estimation.tare``), mapped to the wrench and tested for contact and collision
+(``kvark_ros.core.estimation.contact``), one post-step for every observer. At run time the payload
+(``set_payload``), the tare (``start_tare``/``clear_tare``) and the run-time config keys (``configure``) may change
+between two samples; the filter continues. The numpy reference of a whole step is test/core/reference_estimator.py.
 """
 from __future__ import annotations
 
@@ -20,15 +18,17 @@ from typing import NamedTuple
 
 import numpy as np
 
+from kvark_ros.core.config import EstimatorConfig
 from kvark_ros.core.estimation.augmentation import Augmentation, AugmentationError, load_augmentation
 from kvark_ros.core.estimation.calibration import CALIBRATED_OBSERVER
-from kvark_ros.core.config import EstimatorConfig
-from kvark_ros.core.estimation.contact import CollisionDetector, ContactDetector, contact_covariance
+from kvark_ros.core.estimation.compiled.inputs import ACCEPTED, NON_FINITE, NOT_INCREASING, check_sample
+from kvark_ros.core.estimation.compiled.step import CompiledStep
+from kvark_ros.core.estimation.compiled.wrench import rotate
+from kvark_ros.core.estimation.contact import CollisionDetector, ContactDetector
 from kvark_ros.core.estimation.model_store import TrainedModel, load_model
 from kvark_ros.core.estimation.observers import Observer, ResidualPredictor, make_observer
 from kvark_ros.core.estimation.payload import Payload, inertia_problem
 from kvark_ros.core.estimation.robot_model import RobotModel, condition_number, urdf_sha256
-from kvark_ros.core.estimation.input_kernels import repeated_sample
 from kvark_ros.core.estimation.tare import Tare
 
 
@@ -80,19 +80,9 @@ class Estimate(_EstimateFields):
         pseudo-inverse too, whose ``(J Jᵀ + δ² I)`` is rotation-covariant)."""
         if frame == self.wrench_frame:
             return self.wrench
-        return rotate_wrench(self.ee_rotation if frame == "base" else self.ee_rotation.T, self.wrench)[0]
-
-
-def rotate_wrench(rotation: np.ndarray, wrench: np.ndarray, cov: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, np.ndarray | None]:
-    """A wrench (6,) or wrench directions (6, k), and a covariance (6, 6) or None, in other axes, same
-    reference point: ``F' = B F``, ``Σ' = B Σ Bᵀ``, ``B = diag(R, R)``, ``R`` (3, 3) the rotation to the new axes."""
-    turned = np.concatenate((rotation @ wrench[:3], rotation @ wrench[3:]))
-    if cov is None:
-        return turned, None
-    block = np.kron(np.eye(2), rotation)
-    turned_cov = block @ cov @ block.T
-    return turned, 0.5 * (turned_cov + turned_cov.T)
+        turned = self.wrench.copy()
+        rotate(self.ee_rotation.T if frame == "base" else self.ee_rotation, turned, np.zeros((6, 6)))
+        return turned
 
 
 class Status:
@@ -160,35 +150,27 @@ class Estimator:
         self.robot = robot
         self.observer = observer
         self.trained = trained
-        self._contact_residual = None if observer.uses_residual_model or trained is None else trained.residual
         # The trained static friction band widens the reported intervals at rest (core.estimation.stiction); None: not
         # identified (a model trained before it was) or filter.stiction_velocity 0.
-        self._stiction = None if trained is None else trained.stiction
+        stiction = None if trained is None else trained.stiction
         # kvark's reported covariance is scaled by the trained interval factors (docs/method.md §4.13); None: no
         # factors (another observer, or a model trained before they were read).
-        self._interval_scale = (trained.interval_scale if trained is not None and observer.name == CALIBRATED_OBSERVER
-                                else None)
-        # Pose inputs of the residual model in use (observer's or contact test's): g(q) costs a pinocchio pass.
-        self._needs = observer.needs | frozenset(getattr(self._contact_residual, "needs", ()))
+        scale = trained.interval_scale if trained is not None and observer.name == CALIBRATED_OBSERVER else None
+        # The contact test of an observer without a residual model adds the trained KMP's prediction (§7).
+        contact_kmp = None if observer.uses_residual_model or trained is None else trained.residual
         self.contact = ContactDetector(robot.n, config.contact.confidence, config.contact.debounce)
         self.collision = CollisionDetector(config.contact.confidence, config.contact.collision_torque)
-        self.tare = Tare(config.joint_names, config.tare.duration, config.tare.max_speed)
+        self._compiled = CompiledStep(robot, observer, None if stiction is None else stiction.band, scale, config,
+                                      self.collision.z, contact_kmp)
+        self.tare = Tare(config.joint_names, config.tare.duration, config.tare.max_speed, self._compiled.offset)
         self.counts: Counter[str] = Counter()
         self.unobservable_samples = 0     # estimates with a wrench direction the joints cannot sense (§1.4.1)
         self.status = Status.WARMUP
-        self._p_prev, self._u_prev = np.zeros(robot.n), np.zeros(robot.n)
         self._last_sample = np.full((3, robot.n), np.nan)     # q, q̇, τ_m of the last sample taken (repeats)
-        # The repeat check's machine code now (compiled, or loaded from numba's cache), not on the first sample taken,
+        # The input check's machine code now (compiled, or loaded from numba's cache), not on the first sample taken,
         # where a cold cache stalled the node ~0.4 s and its subscription dropped joint states.
-        repeated_sample(0.0, self._p_prev, self._p_prev, self._p_prev, np.full((3, robot.n), np.nan))
-        # A compiled filter (momentum-form K-VARK) runs the whole step compiled (core.estimation.compiled_step; imported
-        # here, so that the numpy path never loads numba).
-        self._compiled = None
-        if getattr(observer, "compiled", False):
-            from kvark_ros.core.estimation.compiled_step import CompiledStep
-            self._compiled = CompiledStep(robot, observer, self.tare, None if self._stiction is None
-                                          else self._stiction.band, self._interval_scale, config, self.collision.z)
-            self._p_prev, self._u_prev = self._compiled.previous
+        check_sample(0.0, math.nan, np.zeros(robot.n), np.zeros(robot.n), np.zeros(robot.n),
+                     np.full((3, robot.n), np.nan))
         self.reset()
 
     @classmethod
@@ -213,11 +195,6 @@ class Estimator:
         robot = RobotModel.from_config(config, model_augmentation(config, trained), urdf)
         return cls(config, robot, make_observer(name, trained, config.filter, oracle), trained)
 
-    @property
-    def compiled(self) -> bool:
-        """Whether ``step`` runs as the compiled kernel (with a K-VARK momentum filter)."""
-        return self._compiled is not None
-
     def configure(self, config: EstimatorConfig) -> None:
         """Apply a config whose run-time keys changed (config_schema.KEYS ``runtime``), from the next sample.
 
@@ -236,8 +213,7 @@ class Estimator:
         if config.payload != self.robot.payload:
             self.robot.set_payload(config.payload)
         self.config = config
-        if self._compiled is not None:
-            self._compiled.configure(config, self.collision.z)
+        self._compiled.configure(config, self.collision.z)
 
     def set_payload(self, payload: Payload | None) -> None:
         """Replace the known payload at the flange (``None``: none) from the next sample; the filter continues.
@@ -270,8 +246,7 @@ class Estimator:
         self.collision.reset()
         self.tare.interrupt("the filter restarted")
         self._stamp: float | None = None
-        self._p_prev[:] = 0.0
-        self._u_prev[:] = 0.0
+        self._compiled.reset()
 
     def continue_from(self, other: "Estimator") -> None:
         """Continue from ``other``'s state, so that swapping it for this one changes no output (model reload).
@@ -289,7 +264,7 @@ class Estimator:
                              f"'{theirs.name}' ({type(theirs).__name__})")
         mine.load_state(theirs.state())
         self._stamp = other._stamp
-        self._p_prev[:], self._u_prev[:] = other._p_prev, other._u_prev
+        self._compiled.continue_from(other._compiled)
         self._last_sample[:] = other._last_sample
         self.status = other.status
         self.contact.continue_from(other.contact)
@@ -300,109 +275,55 @@ class Estimator:
         self.status = status
         self.counts[status] += 1
 
-    def step(self, stamp: float, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> Estimate | None:
-        """Process one sample (arrays in ``config.joint_names`` order). ``None`` while warming up or on rejection."""
+    def _accept(self, stamp: float, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> float | None:
+        """The input checks of ``step``: the time step dt (s) to the previous sample when the sample goes on to be
+        estimated, else None (rejected and counted, or the first sample after a (re)start, which primes p and u)."""
         n = self.robot.n
         if q.shape != (n,) or qd.shape != (n,) or tau_m.shape != (n,):
             self._reject(Status.BAD_SHAPE)
             return None
-        compiled = self._compiled
-        if compiled is not None:
-            finite = compiled.finite(stamp, q, qd, tau_m)
-        else:
-            # One reduction instead of three isfinite passes: NaN or Inf anywhere makes the sum non-finite, and
-            # so does |x| > ~1e154 (overflow); that is a rejection, not a warning on stderr.
-            with np.errstate(over="ignore", invalid="ignore"):
-                finite = np.isfinite(stamp + q @ q + qd @ qd + tau_m @ tau_m)
-        if not finite:
-            self._reject(Status.NON_FINITE)
-            return None
         previous = self._stamp
-        gap_reset = False
-        if previous is not None:
-            if stamp <= previous:
-                self._reject(Status.STAMP_NOT_INCREASING)
-                return None
-            if repeated_sample(stamp - previous, q, qd, tau_m, self._last_sample):
-                # A stale state under a new stamp: stepping it would hold p for one period and then see the whole
-                # catch-up as one momentum jump, which the onset detector takes for a contact (docs/method.md
-                # §4.8). The next fresh sample's step spans both periods instead.
-                self._reject(Status.REPEATED)
-                return None
-            if stamp - previous > self.config.input.max_gap:
-                self.reset()
-                self._reject(Status.GAP_RESET)
-                previous, gap_reset = None, True
+        check = check_sample(stamp, math.nan if previous is None else previous, q, qd, tau_m, self._last_sample)
+        if check != ACCEPTED:
+            # A stale state under a new stamp (REPEATED): stepping it would hold p for one period and then see the
+            # whole catch-up as one momentum jump, which the onset detector takes for a contact (docs/method.md
+            # §4.8). The next fresh sample's step spans both periods instead.
+            self._reject(Status.NON_FINITE if check == NON_FINITE else Status.STAMP_NOT_INCREASING
+                         if check == NOT_INCREASING else Status.REPEATED)
+            return None
+        gap_reset = previous is not None and stamp - previous > self.config.input.max_gap
+        if gap_reset:
+            self.reset()
+            self._reject(Status.GAP_RESET)
+            previous = None
+        self._stamp = stamp
         if previous is None:
-            self._last_sample[0], self._last_sample[1], self._last_sample[2] = q, qd, tau_m
-            if compiled is not None:
-                compiled.prime(q, qd, tau_m)
-            else:
-                self._p_prev, self._u_prev = self.robot.momentum_terms(q, qd, tau_m)
-            self._stamp = stamp
+            self._prime(q, qd, tau_m)
             if not gap_reset:
                 self._reject(Status.WARMUP)
             return None
-        self._stamp = stamp
-        if compiled is not None:
-            return self._step_compiled(stamp, stamp - previous, q, qd, tau_m)
-        p, u = self.robot.momentum_terms(q, qd, tau_m)
-        p_prev, u_prev = self._p_prev, self._u_prev
-        self._p_prev, self._u_prev = p, u
-        g = self.robot.gravity(q) if "g" in self._needs else None
-        tau_ext, tau_cov = self.observer.step(stamp - previous, qd, p, p_prev, u_prev, q, g)
-        tau_ext = self.tare.apply(stamp, qd, tau_ext)         # τ̂ − offset (a non-finite τ̂ resets below)
-        sticking = self._sticking_variance(qd)
-        widened = reported = tau_cov                           # P of the tests, P the estimate reports
-        scaled = False
-        if tau_cov is not None:
-            if sticking is not None:
-                widened = tau_cov.copy()                       # the observer's own P stays as it is
-                widened.flat[:: n + 1] += sticking             # Cov τ̂ + diag σ²_s(q̇) (docs/method.md §4.11)
-            reported = widened
-            if self._interval_scale is not None and self.config.filter.interval_calibration == "trained":
-                # diag(c) P diag(c), with filter.interval_floor kf at least P_b under a load flagged by the last
-                # sample's contact test, c_b² P_b in free motion, new (docs/method.md §4.13)
-                reported = self._interval_scale.apply(tau_cov, self.config.filter.interval_floor == "kf",
-                                                      self.contact.flag)
-                if sticking is not None:
-                    reported.flat[:: n + 1] += sticking
-                scaled = True
-        wrench, wrench_cov, weak, rotation, jacobian = self._solve_wrench(q, tau_ext, reported)
-        total = tau_ext.sum() + (0.0 if tau_cov is None else reported.sum() + wrench_cov.sum())
-        if not np.isfinite(total):
-            return self._diverged()
-        self.status = Status.OK
-        self.counts[Status.OK] += 1
-        covariance = self._test_covariance(q, qd, g, widened, sticking)
-        # contact.test_covariance reported: the contact test's S is the reported Cov τ̂ (docs/method.md §7.2)
-        tested = reported if scaled and self.config.contact.test_covariance == "reported" else covariance
-        contact = self.contact.flag if tested is None else self.contact.update(stamp, tau_ext, tested)
-        if sticking is not None and covariance is not None:
-            # The collision flag is a safety stop with its own absolute threshold: it keeps the unwidened σ, so a
-            # hit on a sticking joint is not delayed until it exceeds the static band (docs/method.md §4.11).
-            covariance = covariance.copy()
-            covariance.flat[:: n + 1] -= sticking
-        collision = self.collision.update(tau_ext, covariance)
-        if weak.shape[1]:
-            self.unobservable_samples += 1
-        return Estimate(stamp, tau_ext, reported, wrench, wrench_cov, contact, collision, self.config.wrench.frame,
-                        rotation, jacobian, weak)
+        return stamp - previous
 
-    def _step_compiled(self, stamp: float, dt: float, q: np.ndarray, qd: np.ndarray,
-                       tau_m: np.ndarray) -> Estimate | None:
-        """The rest of ``step`` as one compiled kernel (core.estimation.step_kernel), with the reference's outcomes."""
-        self._compiled.load(self.contact.flag)      # the floor under a load flagged by the last sample (§4.13)
-        singular, diverged, statistic, excess, tau_ext, tau_cov, wrench, wrench_cov, rotation, jacobian, weak = (
-            self._compiled.step(stamp, dt, q, qd, tau_m, self.tare))
-        if singular:              # wrench.damping 0 at a singular pose: the reference's answer (it refuses it)
-            wrench, wrench_cov, weak, _, _ = self._solve_wrench(q, tau_ext, tau_cov)
-            diverged = not np.isfinite(tau_ext.sum() + tau_cov.sum() + wrench_cov.sum())
+    def _prime(self, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> None:
+        """The first sample after a (re)start: p and u only, kept for the next."""
+        self._compiled.prime(q, qd, tau_m)
+
+    def step(self, stamp: float, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> Estimate | None:
+        """Process one sample (arrays in ``config.joint_names`` order). ``None`` while warming up or on rejection."""
+        dt = self._accept(stamp, q, qd, tau_m)
+        if dt is None:
+            return None
+        (singular, diverged, untested, statistic, excess, tau_ext, tau_cov, wrench, wrench_cov, rotation, jacobian,
+         weak) = self._compiled.step(stamp, dt, q, qd, tau_m, self.tare, self.contact.flag)
+        if singular:              # wrench.damping 0 at a singular pose: J⁺ does not exist
+            raise np.linalg.LinAlgError(f"wrench.damping {self.config.wrench.damping:g} at a singular pose: J Jᵀ + δ² I "
+                                        "is not positive definite; set wrench.damping > 0")
         if diverged:
             return self._diverged()
         self.status = Status.OK
         self.counts[Status.OK] += 1
-        contact = self.contact.decide(stamp, None if math.isnan(statistic) else statistic)
+        contact = self.contact.flag if untested else self.contact.decide(stamp, None if math.isnan(statistic)
+                                                                         else statistic)
         collision = self.collision.decide(excess)
         if weak.shape[1]:
             self.unobservable_samples += 1
@@ -413,44 +334,3 @@ class Estimator:
         """A non-finite estimate: restart the filter, reject the sample."""
         self.reset()
         self._reject(Status.DIVERGED_RESET)
-
-    def _solve_wrench(self, q: np.ndarray, tau_ext: np.ndarray, tau_cov: np.ndarray | None) -> tuple:
-        """F, Σ_F and the weak directions of τ̂ in the axes of ``wrench.frame``, R and J (docs/method.md §1.4-1.4.1).
-
-        One Jacobian per sample, in base axes: that pass also places the ee frame, whose rotation R gives the ee
-        axes, F_ee = diag(Rᵀ, Rᵀ) F_base (the damped pseudo-inverse is rotation-covariant). That J also tells the
-        weak directions (σ_i < δ); Σ_F carries the damping bias along them (§1.4.1).
-        """
-        settings = self.config.wrench
-        solution = self.robot.solve_wrench(q, tau_ext, tau_cov, settings.damping, "base",
-                                           (settings.prior_force, settings.prior_moment))
-        wrench, wrench_cov, weak = solution.wrench, solution.cov, solution.weak
-        rotation = self.robot.terms.ee_rotation.copy()
-        if settings.frame != "base":
-            wrench, wrench_cov = rotate_wrench(rotation.T, wrench, wrench_cov)
-            if weak.shape[1]:
-                weak = rotate_wrench(rotation.T, weak)[0]
-        return wrench, wrench_cov, weak, rotation, solution.jacobian
-
-    def _sticking_variance(self, qd: np.ndarray) -> np.ndarray | None:
-        """σ²_s(q̇) (n,) N²·m² of the trained static friction band, or None when off (core.estimation.stiction)."""
-        velocity = self.config.filter.stiction_velocity
-        if self._stiction is None or velocity == 0.0:
-            return None
-        return self._stiction.variance(qd, velocity)
-
-    def _test_covariance(self, q: np.ndarray, qd: np.ndarray, g: np.ndarray | None,
-                         tau_cov: np.ndarray | None, sticking: np.ndarray | None) -> np.ndarray | None:
-        """S of the contact and collision tests (class docstring), ``tau_cov`` already widened by the static friction
-        band ``sticking`` (σ²_s (n,) or None); None without a covariance and a residual model (the contact flag then
-        stays, the collision test takes σ = 0)."""
-        if self.observer.uses_residual_model:
-            mean, variance = self.observer.prediction
-        elif self._contact_residual is not None:
-            mean, variance = (self._contact_residual.predict(qd, q, g) if self._contact_residual.needs
-                              else self._contact_residual.predict(qd))
-        else:
-            return tau_cov
-        if tau_cov is None and sticking is not None:      # no P to carry the band: it joins the residual's variance
-            variance = variance + sticking
-        return contact_covariance(tau_cov, mean, variance, self.observer.uses_residual_model)

@@ -24,12 +24,12 @@ from typing import TYPE_CHECKING, NamedTuple, Sequence
 
 import numpy as np
 import pinocchio as pin
-from scipy.linalg.lapack import dpotrf
 
 from kvark_ros.core.estimation.augmentation import Augmentation
 from kvark_ros.core.config import EXAMPLE_ROBOT_DATA_PREFIX
 from kvark_ros.core.hints import did_you_mean, listing
-from kvark_ros.core.estimation.linalg import solve_spd
+from kvark_ros.core.estimation.compiled.layouts import EstimatorParam, Outcome, pack
+from kvark_ros.core.estimation.compiled.wrench import solve_wrench
 from kvark_ros.core.estimation.payload import Payload, inertia_problem
 
 if TYPE_CHECKING:
@@ -201,9 +201,6 @@ class RobotModel:
         self.data = self.model.createData()
         self.terms = LiveTerms(self.data.g, self.data.tau, self.data.C, self.data.oMf[self.ee_frame_id].rotation)
         self._zero = np.zeros(self.model.nv)
-        self._eye6 = np.eye(6)
-        self._no_weak = np.zeros((6, 0))
-        self._no_weak.flags.writeable = False
         self.payload: Payload | None = None
         if payload is not None:
             self.set_payload(payload)
@@ -316,7 +313,7 @@ class RobotModel:
 
     def compute_terms(self, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
         """The pinocchio passes of ``momentum_terms`` and ``jacobian``,
-        for the compiled step (core.estimation.step_kernel).
+        for the compiled step (core.estimation.compiled).
 
         g(q), rnea(q, 0, q̇) = M q̇ + g and C(q, q̇) are left in ``terms`` (with the ee rotation R); returns J (6, n)
         of the ee frame origin in base axes.
@@ -369,39 +366,32 @@ class RobotModel:
 
     def solve_wrench(self, q: np.ndarray, tau_ext: np.ndarray, tau_cov: np.ndarray | None, damping: float,
                      frame: str = "base", prior: tuple[float, float] | None = None) -> WrenchSolution:
-        """The wrench of ``wrench_from_torque``, its Jacobian and the unobservable directions (docs/method.md §1.4.1).
+        """The wrench of ``wrench_from_torque``, its Jacobian and the unobservable directions (docs/method.md §1.4.1),
+        by the estimator's own compiled solve (``compiled.wrench.solve_wrench``).
 
         Whether some σ_i < δ is one 6×6 Cholesky; only then an SVD gives the directions. ``prior``: (force N,
         moment N·m) standard deviations of the unknown wrench; with it (and ``tau_cov``) Σ_F adds the damping
         bias along the weak directions and equals ``wrench_from_torque``'s elsewhere. All in ``frame``'s axes.
+        ``numpy.linalg.LinAlgError`` when J Jᵀ + δ² I is not positive definite (δ = 0 at a singular pose).
         """
-        jac = self.jacobian(q, frame)
-        gram = jac @ jac.T
-        delta2 = damping * damping
-        pinv = solve_spd(gram + delta2 * self._eye6, jac)                 # eq. 39: J⁺ = (J Jᵀ + δ² I)⁻¹ J (6, n)
-        wrench = pinv @ tau_ext
-        # σ_min(J) ≥ δ ⇔ J Jᵀ − δ² I is positive definite (Cholesky succeeds): the regular poses stop here.
-        if damping == 0.0 or dpotrf(gram - delta2 * self._eye6, overwrite_a=1)[1] == 0:
-            weak, strength = self._no_weak, None
-        else:
-            weak, strength = self._weak_directions(jac, damping)
-        if tau_cov is None:
-            return WrenchSolution(wrench, None, weak, jac)
-        wrench_cov = pinv @ tau_cov @ pinv.T                              # J⁺ P J⁺ᵀ
-        if prior is not None and strength is not None:
-            shrink = delta2 / (strength * strength + delta2)              # c_i = δ²/(σ_i²+δ²)
-            bias = (weak * shrink) @ weak.T                               # B = U_w diag(c) U_wᵀ: I − J⁺Jᵀ on U_w
-            variance = np.repeat(np.square(prior), 3)                     # Σ_prior = diag(f², f², f², m², m², m²)
-            wrench_cov += (bias * variance) @ bias                        # + B Σ_prior Bᵀ (§1.4.1)
-        return WrenchSolution(wrench, 0.5 * (wrench_cov + wrench_cov.T), weak, jac)
-
-    @staticmethod
-    def _weak_directions(jac: np.ndarray, damping: float) -> tuple[np.ndarray, np.ndarray]:
-        """The left singular vectors (6, k) of J with σ_i < δ, and those σ_i (k,), σ = 0 for the 6 − n missing."""
-        u, sigma, _ = np.linalg.svd(jac)                                  # J = U diag(σ) Vᵀ, U (6, 6)
-        sigma = np.concatenate((sigma, np.zeros(6 - sigma.size)))
-        weak = sigma < damping
-        return u[:, weak], sigma[weak]
+        n = self.n
+        jac = self.jacobian(q, "base")
+        rotation = self.terms.ee_rotation.copy()
+        force, moment = prior if prior is not None else (0.0, 0.0)
+        params = np.array(pack(EstimatorParam, {EstimatorParam.DAMPING: damping, EstimatorParam.PRIOR_FORCE: force,
+                                                EstimatorParam.PRIOR_MOMENT: moment,
+                                                EstimatorParam.STICTION_VELOCITY: 0.0, EstimatorParam.Z: 0.0}))
+        cov = np.zeros((n, n)) if tau_cov is None else np.ascontiguousarray(tau_cov, dtype=float)
+        wrench, wrench_cov, directions = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
+        end_effector = frame != "base"
+        code, k = solve_wrench(jac, np.ascontiguousarray(tau_ext, dtype=float), np.zeros(n), cov, True, params,
+                               rotation, end_effector, wrench, wrench_cov, directions)
+        if code & Outcome.SINGULAR:
+            raise np.linalg.LinAlgError(f"J Jᵀ + δ² I is not positive definite (damping {damping:g} at a singular "
+                                        "pose)")
+        if end_effector:                                                  # J in the ee axes: diag(Rᵀ, Rᵀ) J
+            jac = np.vstack((rotation.T @ jac[:3], rotation.T @ jac[3:]))
+        return WrenchSolution(wrench, None if tau_cov is None else wrench_cov, directions[:, :k].copy(), jac)
 
     def sensor_torque(self, q: np.ndarray, frame: str, wrench: np.ndarray) -> np.ndarray:
         """``τ = Jᵀ w`` (paper v2 eq. 37) for a wrench (6,) measured in ``frame``'s own axes at its origin."""

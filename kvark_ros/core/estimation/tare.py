@@ -36,12 +36,15 @@ class TareError(ValueError):
 
 class Tare:
     """The tare of one estimator's τ̂_ext (module docstring): ``joint_names`` label the messages,
-    ``duration`` s of rest are averaged, ``max_speed`` rad/s is the fastest joint speed at rest."""
+    ``duration`` s of rest are averaged, ``max_speed`` rad/s is the fastest joint speed at rest; ``offset``: the
+    (n,) array to keep the offset in (written in place; default a new one)."""
 
-    def __init__(self, joint_names: Sequence[str], duration: float, max_speed: float) -> None:
+    def __init__(self, joint_names: Sequence[str], duration: float, max_speed: float,
+                 offset: np.ndarray | None = None) -> None:
         self.joint_names = tuple(joint_names)
         n = len(self.joint_names)
-        self.offset = np.zeros(n)            # (n,) N·m, subtracted while ``active``
+        # (n,) N·m, subtracted while ``active``; the estimator passes its compiled step's buffer, which subtracts it
+        self.offset = np.zeros(n) if offset is None else offset
         self.active = False
         self.averaging = False
         self.note = "no tare taken"          # outcome of the last start, abort or clear

@@ -11,14 +11,13 @@ from typing import TYPE_CHECKING
 from kvark_ros.core.config import FilterSettings
 from kvark_ros.core.observer_catalog import OBSERVER_NAMES, OBSERVERS_BY_NAME
 from kvark_ros.core.estimation.observers.base import FilterTuning, Observer, ObserverError, ResidualPredictor
-from kvark_ros.core.estimation.observers.kvark_filter import KVARKFilter
 from kvark_ros.core.estimation.observers.learned_baselines import LEARNED_BASELINE_VARIANTS
 
 if TYPE_CHECKING:
     from kvark_ros.core.estimation.model_store import TrainedModel
 
-__all__ = ["FilterTuning", "Observer", "ObserverError", "KVARKFilter", "LEARNED_BASELINE_VARIANTS", "make_observer",
-           "OBSERVER_NAMES", "ResidualPredictor"]
+__all__ = ["FilterTuning", "Observer", "ObserverError", "LEARNED_BASELINE_VARIANTS", "make_observer", "OBSERVER_NAMES",
+           "ResidualPredictor"]
 
 
 def make_observer(name: str, trained: "TrainedModel", settings: FilterSettings,

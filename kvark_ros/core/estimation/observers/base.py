@@ -141,6 +141,7 @@ class Observer(Stateful, ABC):
     name: str = ""
     uses_residual_model: bool = False
     reports_covariance: bool = True     # False: step returns P = None (e.g. the momentum observer)
+    diagonal_covariance: bool = True    # P is diagonal (joints filtered apart); False: a full (n, n) P
     # The residual model's (mean (n,) N·m, variance (n,) N²·m²) at the last step's q̇, for the contact
     # test: observers with a residual model set it in ``step`` so the model is evaluated once per sample.
     prediction: tuple[np.ndarray, np.ndarray] | None = None

@@ -1,7 +1,7 @@
 """Build K-VARK, its ablations A1-A4 and the oracle (``observer_catalog``): one ``build`` for the filter family.
 
 The filter runs in the configured measurement form (``filter.measurement``): the momentum form compiled
-(``KVARKKernelFilter``), the difference form as numpy (``KVARKFilter``).
+(``kvark.KVARKFilter``), the difference form as numpy (``kvark_difference.KVARKDifferenceFilter``).
 """
 from __future__ import annotations
 
@@ -9,7 +9,9 @@ from typing import TYPE_CHECKING
 
 from kvark_ros.core.config import FilterSettings
 from kvark_ros.core.estimation.observers.base import Observer, ObserverError, ResidualPredictor
-from kvark_ros.core.estimation.observers.kvark_filter import VARIANTS, KVARKFilter
+from kvark_ros.core.estimation.observers.kvark import KVARKFilter
+from kvark_ros.core.estimation.observers.kvark_difference import KVARKDifferenceFilter
+from kvark_ros.core.estimation.observers.variants import VARIANTS
 
 if TYPE_CHECKING:
     from kvark_ros.core.estimation.model_store import TrainedModel
@@ -20,7 +22,8 @@ def kvark_filter(variant: str, residual: ResidualPredictor, tuning: "FilterTunin
                  settings: FilterSettings, name: str) -> Observer:
     """The K-VARK filter ``variant`` (a key of ``VARIANTS``) on ``residual`` with ``tuning``, reported as ``name``."""
     if settings.measurement == "difference":
-        return KVARKFilter(variant, residual, tuning, settings, name=name, sample_period=trained.sample_period)
+        return KVARKDifferenceFilter(variant, residual, tuning, settings, name=name,
+                                     sample_period=trained.sample_period)
     if trained.momentum_noise is None:
         raise ObserverError("filter.measurement: momentum needs the model's momentum noise; retrain the model")
     noise, contact = trained.momentum_noise, None
@@ -30,10 +33,8 @@ def kvark_filter(variant: str, residual: ResidualPredictor, tuning: "FilterTunin
         noise = noise.with_bandwidth(settings.prior_bandwidth, trained.sample_period)
         if settings.onset_contact_bandwidth > 0.0:                     # the least Σ_d after an accepted onset (§4.7)
             contact = noise.with_bandwidth(settings.onset_contact_bandwidth, trained.sample_period).torque_density
-    # imported here: numba loads (~0.2 s) only where the momentum form is built
-    from kvark_ros.core.estimation.observers.kvark_kernel import KVARKKernelFilter
-    return KVARKKernelFilter(variant, residual, tuning, noise, settings, name=name, sample_period=trained.sample_period,
-                             contact_density=contact)
+    return KVARKFilter(variant, residual, tuning, noise, settings, name=name, sample_period=trained.sample_period,
+                       contact_density=contact)
 
 
 def build(name: str, trained: "TrainedModel", settings: FilterSettings,

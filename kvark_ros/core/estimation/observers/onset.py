@@ -20,7 +20,7 @@ with ν⁰ white, variance S_k (K3). The generalized likelihood ratio (Willsky &
 ℓ_θ = 2 ln Λ is χ²(1) under "no jump" for a fixed θ. When max_θ ℓ_θ exceeds
 ``filter.onset_threshold`` on a joint, the jump is accepted there and the filter is corrected as
 if it had been modelled from θ on: x̂ += e⁺_k Δ̂ and P += e⁺_k e⁺_kᵀ Var Δ̂, Var Δ̂ = 1/C_θ, then
-that joint's hypotheses restart. An onset seen on one sample only (``step_kernel.ONSET_EVIDENCE``) also
+that joint's hypotheses restart. An onset seen on one sample only (``compiled.kvark_filter.ONSET_EVIDENCE``) also
 adds (e⁺_τ Δ̂)² to Var τ̂ alone: its Δ̂ is that sample's innovation, which an impulse of the same area (an
 impact's transient, one outlying torque reading) gives as well as a step. Both explain that sample's
 momentum, so p̂'s correction stands; they differ in τ alone (after an impulse the level is back at zero),
@@ -39,7 +39,7 @@ The detector belongs to the Σ_d adaptation (a jump is the limit of a large Σ_d
 so only the variants with VB use it; the fixed-Q ablations (``kf``, ``kmp_kf*``) stay the paper's
 baselines.
 
-Here: the detector's constants and state; its arithmetic runs in the compiled step (``step_kernel.kvark_step``), its
+Here: the detector's constants and state; its arithmetic runs in the compiled step (``compiled.kvark_filter.kvark_step``), its
 numpy reference is ``ReferenceOnsetDetector`` in test/core/reference_filter.py.
 """
 from __future__ import annotations

@@ -23,8 +23,9 @@ evaluation and one small batched matrix-vector product.
 
 from __future__ import annotations
 
+import functools
 import os
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Mapping
 
@@ -32,6 +33,7 @@ import numpy as np
 import scipy.linalg
 from scipy.special import logsumexp
 
+from kvark_ros.core.estimation.compiled.residual import CompiledKMP, KMPKernelArrays
 from kvark_ros.core.estimation.residual.common import (
     BATCH_CHUNK,
     VARIANCE_FLOOR,
@@ -130,35 +132,6 @@ class GMRReference:
             raise ResidualModelError("reference has no support points")
         if np.any(self.sigma2 <= 0.0):
             raise ResidualModelError("sigma2 must be strictly positive")
-
-
-@dataclass(frozen=True)
-class KMPKernelArrays:
-    """A model's precomputed factors for a compiled ``KMPResidualModel.predict`` (``observers.kvark_kernel``),
-    read-only views; n joints, N support points. With the unit kernel e_i = exp(neg_half_inv_ls2 (q̇ − s_i)² +
-    neg_half_inv_ls2_z (z − s2_i)²) = k_*/σ_f² (eq. 21) and w = W e: mean w_0 (eq. 22), variance
-    var_scale (sigma_f2 − ‖w_1..N‖²) (eq. 23), then the far-field floor and VARIANCE_FLOOR (``predict``).
-    """
-
-    support: np.ndarray  # s (n, N), rad/s
-    support2: np.ndarray  # s2 (n, N), the support points' second inputs, rad or N·m (0: q̇ only)
-    neg_half_inv_ls2: np.ndarray  # −1/(2ℓ²) (n,), s²/rad²
-    neg_half_inv_ls2_z: np.ndarray  # −1/(2ℓ_z²) (n,) of the second input, 1/rad² or 1/(N·m)² (0: q̇ only)
-    sigma_f2: np.ndarray  # σ_f² (n,), N²·m²
-    var_scale: np.ndarray  # N/λ₂ (n,) of eq. 23
-    takes_q: np.ndarray  # (n,) 1.0 where z_j = q_j, else 0.0
-    takes_g: np.ndarray  # (n,) 1.0 where z_j = g_j, else 0.0
-    two_input: np.ndarray  # (n,) bool: a second input, whose far-field floor is σ_f²(1 − ‖L_K⁻¹e‖²)
-    weights: np.ndarray  # W (n, N+1, N), N·m: row 0 σ_f²(K + λ₁Σ)⁻¹μ, rows 1..N σ_f² L⁻¹
-    floor_weights: np.ndarray | None  # L_K⁻¹ (n, N, N), zeros on q̇-only joints; None without a second input
-
-    def __post_init__(self) -> None:
-        for field in fields(self):
-            value = getattr(self, field.name)
-            if value is not None:
-                view = value.view()
-                view.setflags(write=False)
-                object.__setattr__(self, field.name, view)
 
 
 def default_hyperparameters(n: int, n_support: int = 30) -> KMPHyperparameters:
@@ -373,13 +346,17 @@ class KMPResidualModel:
             z = z + self._takes_g * g
         return z
 
+    @functools.cached_property
+    def compiled(self) -> CompiledKMP:
+        """This model packed for the compiled step (``compiled.residual.CompiledKMP``), built when first asked."""
+        return CompiledKMP(self.kernel_arrays(), VARIANCE_FLOOR)
+
     def predict(self, qd: np.ndarray, q: np.ndarray | None = None,
                 g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """qd: (n,) one sample -> (mean (n,) N·m, variance (n,) N²·m²).
+        """qd: (n,) one sample -> (mean (n,) N·m, variance (n,) N²·m²), compiled (``compiled.residual.kmp_predict``;
+        ``predict_batch`` is the numpy form, to rounding the same).
 
         q (n,) rad and g (n,) N·m (the model's gravity torque) are needed when ``needs`` names them.
-        Hot path: no Python loop over joints, no allocation beyond a few small temporaries.
-
         qd in rad/s, assumed finite (the caller validates). The variance is floored twice:
         far from the training data (far-field floor) and at VARIANCE_FLOOR.
 
@@ -391,26 +368,13 @@ class KMPResidualModel:
         conditioned noise-free on the nearest support point alone: 0 on the data, σ_f² far away. A two-input joint
         conditions on all its support points instead (``_far_field_floor``).
         """
-        e = qd[:, None] - self._s
-        np.square(e, out=e)
-        np.multiply(e, self._neg_half_inv_ls2, out=e)
         if self.needs:
-            d = self.second_input(q, g)[:, None] - self._s2
-            np.square(d, out=d)
-            np.multiply(d, self._neg_half_inv_ls2_z, out=d)
-            e += d
-        np.exp(e, out=e)  # k_*/sigma_f2, (n, N)
-        w = np.matmul(self._weights, e[:, :, None])[:, :, 0]  # (n, N+1)
-        mean = w[:, 0]  # eq. 22
-        v = w[:, 1:]
-        var = self._var_scale * (self._sigma_f2 - np.einsum("ij,ij->i", v, v))  # eq. 23
-        np.maximum(var, self._far_field_floor(e), out=var)  # far-field floor
-        np.maximum(var, VARIANCE_FLOOR, out=var)
-        return mean, var
+            self.second_input(q, g)                                  # a clear error when q or g is missing
+        return self.compiled.predict(qd, q, g)
 
     def predict_batch(self, qd: np.ndarray, q: np.ndarray | None = None,
                       g: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """qd: (T, n) -> mean (T, n), variance (T, n); for training plots and metrics.
+        """qd: (T, n) -> mean (T, n), variance (T, n), in numpy: what training, plots and metrics compute with.
 
         q, g (T, n) as in predict(). Same equations and floors as predict(), evaluated in chunks to bound memory.
         """

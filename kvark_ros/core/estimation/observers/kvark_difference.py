@@ -1,17 +1,6 @@
-"""K-VARK (paper v1 Algorithm 1) and its ablations A1-A4 (paper v2 Table VI).
-
-All five are one disturbance Kalman filter on the momentum virtual measurement with the KMP
-mean correction; they differ in which covariances adapt:
-
-=============  =================  ==============  ==============  ================
-name           heteroscedastic R  EWMA Σ_emp       NIS-scaled Σ_d  VB-IW Σ_d
-=============  =================  ==============  ==============  ================
-kf (A1)        –                  –               –               –
-kmp_kf (A2)    ✓                  –               –               –
-kmp_kf_ewma    ✓                  ✓               –               –
-kmp_kf_nis     ✓                  ✓               ✓               –
-kvark (A5)     ✓                  ✓               –               ✓
-=============  =================  ==============  ==============  ================
+"""K-VARK in the paper's difference form (docs/method.md §4.1): the disturbance KF on the virtual measurement eq. 28,
+every variant of ``variants``, in numpy (``filter.measurement: difference``; the default momentum form is
+``kvark.KVARKFilter``). Its P is full (the VB couples the joints), which the estimator's post-step takes as is.
 
 Units. Eq. 28 divided by t_s gives the measurement in torque units,
 ``y_k = ζ_k / t_s = τ_ext,k + ν_k / t_s``, so ``H = I`` and ``R_k = Σ_ν,k / t_s² = Σ_*,k + Σ_emp,k / t_s²``
@@ -24,7 +13,6 @@ robot; we output torque acting *on* the robot (docs/method.md §1.2). The flip h
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -33,27 +21,7 @@ from kvark_ros.core.config_schema import vb_variant_problem
 from kvark_ros.core.estimation.linalg import solve_spd
 from kvark_ros.core.estimation.observers.base import (DEFAULT_SAMPLE_PERIOD, FilterTuning, Observer, PerSample,
                                                       ResidualPredictor)
-
-NIS_SCALE_BOUNDS = (1e-2, 1e4)   # limits of the A4 process-noise scale α, so one outlier cannot freeze or explode Σ_d
-
-
-@dataclass(frozen=True)
-class Variant:
-    """Which covariances adapt online."""
-
-    heteroscedastic: bool
-    ewma: bool
-    nis: bool
-    vb: bool
-
-
-VARIANTS = {
-    "kf": Variant(heteroscedastic=False, ewma=False, nis=False, vb=False),
-    "kmp_kf": Variant(heteroscedastic=True, ewma=False, nis=False, vb=False),
-    "kmp_kf_ewma": Variant(heteroscedastic=True, ewma=True, nis=False, vb=False),
-    "kmp_kf_nis": Variant(heteroscedastic=True, ewma=True, nis=True, vb=False),
-    "kvark": Variant(heteroscedastic=True, ewma=True, nis=False, vb=True),
-}
+from kvark_ros.core.estimation.observers.variants import NIS_SCALE_BOUNDS, VARIANTS
 
 
 def kalman_update(x_pred: np.ndarray, P_pred: np.ndarray, r: np.ndarray,
@@ -78,7 +46,8 @@ def _identity(n: int) -> np.ndarray:
     eye.setflags(write=False)
     return eye
 
-class KVARKFilter(Observer):
+
+class KVARKDifferenceFilter(Observer):
     """Disturbance KF with KMP residual correction; ``variant`` selects K-VARK or an ablation.
 
     State ``x = τ_ext`` (n,) N·m, random walk (eq. 32); covariance ``P`` (n, n) N²·m².
@@ -88,6 +57,7 @@ class KVARKFilter(Observer):
     """
 
     uses_residual_model = True
+    diagonal_covariance = False     # the VB's Σ_d couples the joints
     STATE = Observer.STATE + ("prediction", "x", "P", "empirical", "nis_mean", "Sigma_d", "vb_dof", "vb_scale")
 
     def __init__(self, variant: str, residual: ResidualPredictor, tuning: FilterTuning,

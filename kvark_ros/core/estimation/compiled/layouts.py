@@ -1,19 +1,12 @@
-"""The layouts of the compiled step's packed arrays (``core.estimation.step_kernel``), each entry declared once.
+"""The layouts of the compiled step's packed arrays, each entry declared once.
 
-Every array numba receives from Python costs ~1 k instructions to unbox, so the compiled step takes its state and
-constants packed in a few arrays (``step_kernel`` module docstring). Their entries are declared here, one commented
-line each, as a ``Layout`` (an ``IntEnum`` numbered 0, 1, … in the order declared: ``Const``, ``Param``, ``Option``,
-``Vec``, ``Counter``, ``Row``, ``EstimatorParam``), and the bits of an integer as ``Bits`` (1, 2, 4, …: ``Flag``,
+Every array numba receives from Python costs ~1 k instructions to unbox, so the kernels take their state and
+constants packed in a few arrays. Their entries are declared here, one commented line each, as a ``Layout`` (an
+``IntEnum`` numbered 0, 1, … in the order declared), and the bits of an integer as ``Bits`` (1, 2, 4, …: ``Flag``,
 ``Outcome``). Python code writes the arrays by member (``pack``). In Python 3.11 reading a member costs ~800
-instructions (``EnumType.__getattr__``): per-sample Python code reads plain ints or views bound once
-(``core.estimation.compiled_step``, ``observers.kvark_kernel``).
+instructions (``EnumType.__getattr__``): per-sample Python code reads plain ints or views bound once (``step``).
 
-The layouts of ``core.estimation.model_kernels`` (``Pose``, ``Effect``) are here too.
-
-numba freezes these numbers into the kernels' machine code, and its on-disk cache is keyed on each kernel's own
-file alone: ``LAYOUTS_DIGEST`` in ``step_kernel.py`` and ``model_kernels.py`` pins this file's sha256, so changing a
-layout means updating the digest there, which recompiles the kernels
-(``test/core/test_compiled_step_matches_reference.py`` fails until it is done).
+numba freezes these numbers into the kernels' machine code; the kernel files pin this file's sha256 (``jit``).
 """
 from __future__ import annotations
 
@@ -54,9 +47,6 @@ class Const(Layout):
     Q_TAU = enum.auto()                 # q_τ, the random-walk density of τ from training (eq. 32), N²·m²/s
     Q_CONTACT = enum.auto()             # q_c, the least q_τ after an accepted onset (§4.7), N²·m²/s
     RESIDUAL_VAR = enum.auto()          # the static residual variance σ²_r (without heteroscedastic noise), N²·m²
-    NEG_HALF_INV_LS2 = enum.auto()      # the q̇-only KMP's −1/(2ℓ²) (eq. 21), s²/rad²
-    SIGMA_F2 = enum.auto()              # the KMP's σ_f², N²·m²
-    VAR_SCALE = enum.auto()             # the KMP's N/λ₂ (eq. 23)
 
 
 CONST_ROWS = len(Const)
@@ -64,9 +54,8 @@ CONST_ROWS = len(Const)
 
 class Param(Layout):
     """Entries of the float parameters (params, (PARAMS,)): the filter's settings per sample and the numbers of
-    other modules (WINDOW_MAX_RATIO, NIS_SCALE_BOUNDS, VARIANCE_FLOOR), which reach the kernels as arguments (module
-    docstring). ``KVARKKernelFilter`` writes each from the filter's attribute of its lower-case name (``ewma_rate``) or
-    from its ``declared_params``."""
+    other modules (WINDOW_MAX_RATIO, NIS_SCALE_BOUNDS), which reach the kernels as arguments. ``KVARKFilter`` writes
+    each from the filter's attribute of its lower-case name (``ewma_rate``) or from its ``declared_params``."""
 
     EWMA_RATE = enum.auto()             # the EWMA R_k's rate per sample (eq. 31)
     NIS_RATE = enum.auto()              # the NIS mean's rate per sample (A4)
@@ -77,7 +66,6 @@ class Param(Layout):
     MAX_RATIO = enum.auto()             # the window's bound q̂ ≤ ratio · q_τ (eq. 39)
     NIS_LOW = enum.auto()               # the A4 scale's lower limit
     NIS_HIGH = enum.auto()              # and its upper limit
-    VARIANCE_FLOOR = enum.auto()        # the floor of the KMP's σ²_*, N²·m²
 
 
 PARAMS = len(Param)
@@ -91,9 +79,7 @@ class Option(Layout):
     NIS = enum.auto()                   # scale Σ_d by the NIS mean (A4)
     WINDOW = enum.auto()                # the window VB estimates Σ_d (§4.6)
     ONSET = enum.auto()                 # the onset detector runs (§4.7)
-    KMP = enum.auto()                   # the q̇-only KMP is evaluated inside the kernel (kmp_predict)
     STRIDE = enum.auto()                # samples from one closing snapshot of the window to the next
-    SUPPORT = enum.auto()               # the KMP's support points N (split_constants)
     ONSETS = enum.auto()                # the onset detector's hypotheses M (split_state)
     VB_IW = enum.auto()                 # the per-sample VB (readings paper and smoothed, §4.4)
     SMOOTHED = enum.auto()              # its smoothed reading (lag-one RTS, §4.5)
@@ -142,14 +128,23 @@ INTS = len(Counter)
 
 
 class Flag(Bits):
-    """Bits of ``estimate_step``'s ``flags``: what to run this call, and the estimator's settings."""
+    """Bits of ``estimate_step``'s ``flags``: what to run this call, what the observer hands over, and the estimator's
+    settings."""
 
-    MOMENTUM = enum.auto()              # p, u of this sample (kept for the next)
-    FILTER = enum.auto()                # the filter step, kvark_step
-    POST = enum.auto()                  # τ̂, Cov τ̂, F, Σ_F and the tests' statistics
+    MOMENTUM = enum.auto()              # p, u of this sample (rows P, U; with AUGMENTED, τ_aug first)
+    KMP = enum.auto()                   # the KMP's μ_*, σ²_* at this sample (into the filter's or the rows' MEAN, VAR)
+    FILTER = enum.auto()                # the K-VARK filter step, kvark_step, on the packed filter state
+    PACKED = enum.auto()                # the post-step reads τ̂, P, μ_r, σ²_r from the packed filter state (else rows)
+    SHIFT = enum.auto()                 # keep p, u for the next sample (rows P_PREV, U_PREV)
+    POST = enum.auto()                  # τ̂, Cov τ̂, F, Σ_F and the tests' statistics (the post-step)
+    COVARIANCE = enum.auto()            # the observer reports P (else τ̂ only)
+    FULL = enum.auto()                  # its P is full, (n, n) in the buffer (else diagonal, the VARIANCE row)
+    RESIDUAL = enum.auto()              # a residual prediction μ_r, σ²_r is there for the tests (§7)
+    COMPENSATED = enum.auto()           # the observer subtracts that residual (else the tests' S adds μ_r², §7)
     TARED = enum.auto()                 # subtract the tare offset (§4.10)
     STICTION = enum.auto()              # widen Cov τ̂ by the static friction band (§4.11)
     SCALED = enum.auto()                # report P scaled by the interval factors (§4.13)
+    LOADED = enum.auto()                # the last sample's contact test held a load: the floor P_b (else c_b² P_b)
     END_EFFECTOR = enum.auto()          # the wrench in the ee axes
     AUGMENTED = enum.auto()             # subtract τ_aug from u (§2.2)
     TEST_REPORTED = enum.auto()         # the contact test's S: the reported covariance, not P + σ²_r (§7.2)
@@ -158,13 +153,14 @@ class Flag(Bits):
 class Outcome(Bits):
     """Bits of the code ``estimate_step`` returns."""
 
-    WEAK = enum.auto()                  # a direction with σ_i < δ: weak_wrench follows (§1.4.1)
+    WEAK = enum.auto()                  # a direction with σ_i < δ, in the buffer's directions (§1.4.1)
     DIVERGED = enum.auto()              # a non-finite estimate
     SINGULAR = enum.auto()              # J Jᵀ + δ² I not positive definite (δ = 0 at a singular pose: refused)
+    UNTESTED = enum.auto()              # no S for the contact test (no P, no residual): the flag holds
 
 
 class Row(Layout):
-    """Rows of the estimator's per-joint buffer (rows, (ROWS, n))."""
+    """Rows of the estimator's per-joint buffer (rows, (ROWS, n), the first part of its packed buffer)."""
 
     P_PREV = enum.auto()                # p_{k−1}, N·m·s
     U_PREV = enum.auto()                # u_{k−1}, N·m
@@ -173,7 +169,13 @@ class Row(Layout):
     AUG = enum.auto()                   # τ_aug of this sample, N·m
     BAND = enum.auto()                  # the static friction band F_s, N·m
     SCALE = enum.auto()                 # the interval factors c (docs/method.md §4.13)
-    FLOOR = enum.auto()                 # the reported variance's floor P_b, N²·m² (docs/method.md §4.13)
+    FLOOR_FREE = enum.auto()            # the reported variance's floor in free motion c_b² P_b, N²·m² (§4.13)
+    FLOOR_LOADED = enum.auto()          # and under a load, P_b, N²·m² (zeros: no floor)
+    OFFSET = enum.auto()                # the tare offset, N·m (the Tare's own array)
+    ESTIMATE = enum.auto()              # an observer's τ̂ handed to the post-step, N·m
+    VARIANCE = enum.auto()              # its diagonal P, N²·m²
+    MEAN = enum.auto()                  # the residual's μ_r at this sample, N·m
+    VAR = enum.auto()                   # and its σ²_r, N²·m²
 
 
 ROWS = len(Row)
@@ -192,8 +194,18 @@ class EstimatorParam(Layout):
 ESTIMATOR_PARAMS = len(EstimatorParam)
 
 
-class Pose(Layout):
-    """Rows of ``kmp_predict_pose``'s ``pose`` (len(Pose), n), per joint (``KMPResidualModel.kernel_arrays``)."""
+class KmpHeader(Layout):
+    """The first entries of a packed KMP (``residual.pack_kmp``)."""
+
+    SUPPORT = enum.auto()               # N, the support points per joint
+    FLOOR = enum.auto()                 # the floor of σ²_*, N²·m² (``residual.common.VARIANCE_FLOOR``)
+
+
+KMP_HEADER = len(KmpHeader)
+
+
+class Kmp(Layout):
+    """Rows of a packed KMP's per-joint constants (len(Kmp), n) (``KMPResidualModel.kernel_arrays``)."""
 
     LS = enum.auto()                    # −1/(2ℓ²) of q̇ (eq. 21), s²/rad²
     LS_Z = enum.auto()                  # −1/(2ℓ_z²) of the second input z (§3.7); 0 for a q̇-only joint
@@ -204,9 +216,12 @@ class Pose(Layout):
     TWO_INPUT = enum.auto()             # 1 if the joint has a second input (its far-field floor is the GP's), else 0
 
 
+KMP_ROWS = len(Kmp)
+
+
 class Effect(Layout):
     """Codes of ``augmentation_torque``'s entries: one per torque effect of ``core.effect_catalog``, its name in upper
-    case, in the catalog's order (``core.estimation.compiled_step.EFFECT_CODES`` maps them by name;
+    case, in the catalog's order (``residual.EFFECT_CODES`` maps them by name;
     ``test/core/test_effect_catalog.py`` checks that every torque effect has one)."""
 
     COULOMB_FRICTION = enum.auto()      # tanh(q̇/ε) θ

@@ -40,6 +40,26 @@ class Window:
     max_loss: float                 # share of lost joint states above which the input status warns
 
 
+class Windows:
+    """Cuts the node's running totals into ``/diagnostics`` windows: each :class:`Window` covers what changed since
+    the previous one (``start``: the first window's start time, s)."""
+
+    def __init__(self, start: float) -> None:
+        self._time = start
+        self._received = self._published = self._lost = 0
+        self._counts: Counter[str] = Counter()
+
+    def next(self, now: float, received: int, published: int, counts: Counter[str], lost: int,
+             max_loss: float) -> Window:
+        """The window ending at ``now`` (s), given the totals since start."""
+        fresh = {key: total - self._counts.get(key, 0) for key, total in counts.items()
+                 if total > self._counts.get(key, 0)}
+        window = Window(now - self._time, received - self._received, published - self._published, counts, fresh,
+                        lost - self._lost, max_loss)
+        self._time, self._received, self._published, self._lost, self._counts = now, received, published, lost, counts
+        return window
+
+
 class StatusBuilder:
     """Makes ``DiagnosticStatus`` messages named ``<node>: <part>`` for one robot."""
 

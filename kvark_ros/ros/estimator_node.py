@@ -14,10 +14,9 @@ services ``~/reset`` (also clears the tare), ``~/reload_model`` and ``~/tare``. 
 the statuses model, input, filter, wrench (unobservable wrench directions near singular poses) and tare.
 
 ``~/tare`` starts averaging τ_ext over ``tare.duration`` s of sample time at rest
-(``kvark_ros.core.estimation.tare``) and returns at once: a service callback that waited for the samples would
-hold an executor thread for a second (and deadlock a single-threaded executor, which runs the
-inputs too). It refuses while the robot moves; the outcome (averaging, active with the offset per
-joint, or aborted and why) is on ``/diagnostics`` (``…: tare``).
+(``kvark_ros.core.estimation.tare``) and returns at once: a callback that waited for the samples would hold
+the services for a second. It refuses while the robot moves; the outcome (averaging, active with the offset
+per joint, or aborted and why) is on ``/diagnostics`` (``…: tare``).
 
 Pairing: see ``kvark_ros.core.estimation.pairing``. Each message is ordered by when it was published (its
 message info's source timestamp; the receive time where the middleware gives none), so an executor
@@ -29,7 +28,7 @@ a zero stamp (a driver that never fills it) is stamped with its receive time on 
 except the first one after start or a reset (simulated bags start at 0 s).
 
 Run-time payload: ``robot_model.payload.*`` changed by ``ros2 param set`` go through
-``Estimator.configure`` (``Estimator.set_payload``) between two samples, under the lock; the filter
+``Estimator.configure`` (``Estimator.set_payload``) between two samples, under ``lock``; the filter
 continues. A non-physical payload is refused by the on-set callback with the reason.
 
 Robustness: every rejected message is counted per reason and summarised on ``/diagnostics``;
@@ -39,20 +38,23 @@ non-finite estimate).
 Parameters: the config keys (``kvark_ros.ros.parameters``); relative paths resolve against the
 package's config folder (``parameters.config_folder``: no ament environment needed).
 
-Threads: ``main`` spins a single-threaded executor: inputs, estimation, publishing, services and
-``/diagnostics`` run one after another on one thread, and nothing needs a lock (rclpy's two-thread
-``MultiThreadedExecutor`` lost 40-96 % of the joint states at 500 Hz on Fast DDS in its own machinery).
-``~/reload_model`` and a new ``robot_description`` build the estimator on a worker thread while the
-executor keeps taking samples; their coroutine then swaps it in between two samples, continuing the old
-filter's state when joints and observer match (reloading the same model changes no output), and replies.
-Lost input is measured: gaps in the joint-state stamps against the measured rate are counted and
-shown on ``/diagnostics`` (WARN above ``diagnostics.max_loss``). The uncertainty topics are published
-only while someone subscribes (checked at every ``/diagnostics`` tick and every 100 estimates).
+Threads (``kvark_ros.ros.input_loop``): ``main`` takes the inputs (raw CDR, decoded by layout:
+``kvark_ros.io.cdr_messages``) on a wait loop of its own, every ready message at each wake, in publication
+order, and estimates and publishes (serialised) on the same thread. Services, parameters, ``/diagnostics`` and
+``robot_description`` run on rclpy's executor on a second thread, changing the node's state only under
+``lock``: between two batches of samples. ``~/reload_model`` and a new ``robot_description`` build the
+estimator on a worker thread, then swap it in, continuing the old filter's state when joints and observer
+match (reloading the same model changes no output).
+
+Lost input is measured: gaps in the joint-state stamps against the measured rate are counted and shown on
+``/diagnostics`` (WARN above ``diagnostics.max_loss``). The uncertainty topics are published only while
+someone subscribes (checked at every ``/diagnostics`` tick and every 100 estimates).
 """
 from __future__ import annotations
 
 import math
 import sys
+import threading
 from collections import Counter
 from typing import Any
 
@@ -60,8 +62,9 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile
@@ -73,10 +76,13 @@ from kvark_ros.core.config import NODE_NAME, ROBOT_DESCRIPTION, ConfigError
 from kvark_ros.core.estimation.estimator import Estimate, Estimator
 from kvark_ros.core.estimation.pairing import RESET, JointColumns, Reject, Sample, StreamPairer, stamp_seconds
 from kvark_ros.core.estimation.tare import TareError
-from kvark_ros.ros import parameters
+from kvark_ros.io.cdr_messages import Decoder
+from kvark_ros.io.common import FLOAT64_ARRAY, JOINT_STATE
+from kvark_ros.ros import input_loop, parameters
 from kvark_ros.ros.builds import SWITCH_INTERVAL, build, build_off_path
-from kvark_ros.ros.diagnostics import NOT_READY, SERVICE_RESET, StatusBuilder, Window
-from kvark_ros.ros.publishers import SUBSCRIBER_CHECK, EstimatePublishers, qos_profile
+from kvark_ros.ros.diagnostics import NOT_READY, SERVICE_RESET, StatusBuilder, Windows
+from kvark_ros.ros.input_loop import InputGroup, locked, publication_ns
+from kvark_ros.ros.publishers import SUBSCRIBER_CHECK, EstimatePublishers, Stamp, qos_profile
 
 URDF_FROM_TOPIC = ROBOT_DESCRIPTION
 __all__ = ["EstimatorNode", "main", "Drop", "SUBSCRIBER_CHECK", "ConfigError"]
@@ -94,6 +100,7 @@ class EstimatorNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
+        self.lock = threading.Lock()                 # held by the input thread per batch, by the others per change
         parameters.declare(self)
         self._config = config = parameters.read_config(self)
         self._torque_source = config.input.torque_source
@@ -113,23 +120,27 @@ class EstimatorNode(Node):
         self._archived: Counter[str] = Counter()     # Status counts of estimators replaced by a reload
         self._received = 0
         self._last: Estimate | None = None          # newest estimate, for /diagnostics
-        self._diag_time = self.get_clock().now().nanoseconds / 1e9
-        self._diag_received = self._diag_published = self._diag_lost = 0
-        self._diag_counts: Counter[str] = Counter()
+        self._windows = Windows(self.get_clock().now().nanoseconds / 1e9)
         self._statuses = StatusBuilder(self.get_fully_qualified_name(), config.robot)
 
         sensor_qos = qos_profile("sensor_data", config.input.queue_depth)
         self._outputs = EstimatePublishers(self, config.joint_names,
                                            qos_profile(config.output.qos, config.input.queue_depth))
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
-        inputs = config.input
-        self.create_subscription(JointState, inputs.joint_states_topic, self._joint_state, sensor_qos)
-        if self._torque_source == "effort_commands":
-            self.create_subscription(Float64MultiArray, inputs.effort_commands_topic, self._command_array, sensor_qos)
-        elif self._stamped_commands:
-            self.create_subscription(JointState, inputs.effort_commands_topic, self._command_state, sensor_qos)
+        # The inputs arrive as CDR bytes (module docstring: Threads), with no QoS event handlers (input_loop).
+        self.input_group = InputGroup()
+        self._states = Decoder(JOINT_STATE)
+        self._commands = Decoder(FLOAT64_ARRAY if self._torque_source == "effort_commands" else JOINT_STATE)
+        inputs = [(JointState, config.input.joint_states_topic, self._joint_state)]
+        if self._torque_source != "joint_states_effort":
+            inputs.append((Float64MultiArray, config.input.effort_commands_topic, self._command_array)
+                          if self._torque_source == "effort_commands" else
+                          (JointState, config.input.effort_commands_topic, self._command_state))
+        no_events = SubscriptionEventCallbacks(use_default_callbacks=False)
+        self.inputs = [self.create_subscription(kind, topic, callback, sensor_qos, callback_group=self.input_group,
+                                                event_callbacks=no_events, raw=True) for kind, topic, callback in inputs]
         # The model builds (coroutines awaiting a worker thread) in a group of their own: a callback group is busy
-        # until its coroutine returns, so in the node's default group a build would hold up every input.
+        # until its coroutine returns, so in the node's default group a build would hold up the services.
         builds = MutuallyExclusiveCallbackGroup()
         self.create_subscription(String, "robot_description", self._on_robot_description,
                                  QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL),
@@ -154,8 +165,7 @@ class EstimatorNode(Node):
             f"observer {config.observer}, {self._n} joints, model {config.model_dir}, "
             f"torque from {self._torque_source}; outputs under {self.get_fully_qualified_name()}/")
 
-    # ------------------------------------------------------------------ parameters
-
+    @locked
     def _apply_parameters(self, changed: list[Parameter]) -> None:
         """Post-set callback: the config with the new run-time values, applied to everything that uses them
         (a payload through ``Estimator.configure``: the model changes between two samples)."""
@@ -173,8 +183,7 @@ class EstimatorNode(Node):
         self.get_logger().info("parameters changed: " + ", ".join(
             f"{n}={self.get_parameter(n).value}" for n in names))
 
-    # ------------------------------------------------------------------ the estimator
-
+    @locked
     def _swap_in(self, built: Estimator | str, urdf_xml: str | None) -> str | None:
         """Put a built estimator in use between two samples, continuing the old one's filter state where joints
         and observer match; ``built`` a problem: return it (the old estimator stays)."""
@@ -203,19 +212,27 @@ class EstimatorNode(Node):
             return self._urdf_xml
         return None
 
-    # ------------------------------------------------------------------ inputs
-
     def _order_key(self, info: dict, stamp: float | None) -> float:
         """When the message was published (s): with stamped commands the header stamp (an unstamped one is
         at the newest state's), else the middleware's source timestamp (or receive time, or now)."""
         if self._stamped_commands and stamp is not None:
             return stamp if stamp > 0.0 or self._pairer.last_stamp is None else self._pairer.last_stamp
-        published = next((info[k] for k in ("source_timestamp", "received_timestamp") if info.get(k) is not None),
-                         None)
+        published = publication_ns(info)
         return (self.get_clock().now().nanoseconds if published is None else published) / 1e9
 
-    def _joint_state(self, msg: JointState, info: dict) -> None:
-        index = self._columns.index(msg.name)
+    def _decoded(self, decoder: Decoder, raw: bytes, reason: str) -> tuple[Any, dict] | None:
+        """(first message of its layout, numbers) of ``raw``; None for bytes that are no message (``reason``)."""
+        try:
+            return decoder.decode(raw)
+        except ValueError:
+            self._counts[reason] += 1
+            return None
+
+    def _joint_state(self, raw: bytes, info: dict) -> None:
+        if (decoded := self._decoded(self._states, raw, Drop.MALFORMED)) is None:
+            return
+        message, numbers = decoded
+        index = self._columns.index(message.name)
         if index is None:
             self._counts[Drop.OTHER_JOINTS] += 1
             return
@@ -227,28 +244,30 @@ class EstimatorNode(Node):
         if self._estimator is None:
             self._counts[Drop.NOT_READY] += 1
             return
-        count = len(msg.name)
-        if len(msg.position) != count or len(msg.velocity) != count:
+        count = len(message.name)
+        position, velocity = numbers["position"], numbers["velocity"]
+        if len(position) != count or len(velocity) != count:
             self._counts[Drop.MALFORMED] += 1
             return
-        stamp_msg = msg.header.stamp
-        if stamp_msg.sec == 0 and stamp_msg.nanosec == 0 and self._pairer.last_stamp is not None:
-            now = self.get_clock().now()          # an unstamped driver: the receive time
-            stamp_msg, stamp = now.to_msg(), now.nanoseconds / 1e9
+        tag: Stamp = (int(numbers["sec"][0]), int(numbers["nanosec"][0]))
+        if tag == (0, 0) and self._pairer.last_stamp is not None:
+            now = self.get_clock().now().nanoseconds          # an unstamped driver: the receive time
+            tag, stamp = divmod(now, 1_000_000_000), now / 1e9
         else:
-            stamp = stamp_seconds(stamp_msg.sec, stamp_msg.nanosec)
-        q = np.asarray(msg.position, dtype=np.float64)[index]
-        qd = np.asarray(msg.velocity, dtype=np.float64)[index]
+            stamp = stamp_seconds(*tag)
+        q, qd = position[index], velocity[index]
         if self._torque_source == "joint_states_effort":
-            effort = msg.effort
-            tau_m = np.asarray(effort, dtype=np.float64)[index] if len(effort) == count else None
-            self._estimate_all(self._pairer.stamped_state(Sample(stamp, q, qd, tau_m, stamp_msg)))
+            effort = numbers["effort"]
+            tau_m = effort[index] if len(effort) == count else None
+            self._estimate_all(self._pairer.stamped_state(Sample(stamp, q, qd, tau_m, tag)))
         else:
             key = self._order_key(info, stamp)
-            self._estimate_all(self._pairer.state(key, Sample(stamp, q, qd, None, stamp_msg)))
+            self._estimate_all(self._pairer.state(key, Sample(stamp, q, qd, None, tag)))
 
-    def _command_array(self, msg: Float64MultiArray, info: dict) -> None:
-        data, dims = msg.data, msg.layout.dim
+    def _command_array(self, raw: bytes, info: dict) -> None:
+        if (decoded := self._decoded(self._commands, raw, Drop.BAD_COMMAND)) is None:
+            return
+        data, dims = decoded[1]["data"], decoded[0].layout.dim
         index = None
         if len(dims) == 1 and dims[0].label:
             labels = dims[0].label.split(",")
@@ -258,21 +277,24 @@ class EstimatorNode(Node):
                     self._counts[Drop.BAD_COMMAND] += 1
                     return
         if index is not None:
-            tau_m = np.asarray(data, dtype=np.float64)[index]
+            tau_m = data[index]
         elif len(data) == self._n:                # unlabelled: in joint_names order, as ros2_control sends it
-            tau_m = np.array(data, dtype=np.float64)
+            tau_m = data.copy()
         else:
             self._counts[Drop.BAD_COMMAND] += 1
             return
         self._estimate_all(self._pairer.command(self._order_key(info, None), tau_m))
 
-    def _command_state(self, msg: JointState, info: dict) -> None:
-        index = self._columns.index(msg.name)
-        if not isinstance(index, np.ndarray) or len(msg.effort) != len(msg.name):
+    def _command_state(self, raw: bytes, info: dict) -> None:
+        if (decoded := self._decoded(self._commands, raw, Drop.BAD_COMMAND)) is None:
+            return
+        message, numbers = decoded
+        index = self._columns.index(message.name)
+        if not isinstance(index, np.ndarray) or len(numbers["effort"]) != len(message.name):
             self._counts[Drop.BAD_COMMAND] += 1
             return
-        key = self._order_key(info, stamp_seconds(msg.header.stamp.sec, msg.header.stamp.nanosec))
-        self._estimate_all(self._pairer.command(key, np.asarray(msg.effort, dtype=np.float64)[index]))
+        key = self._order_key(info, stamp_seconds(int(numbers["sec"][0]), int(numbers["nanosec"][0])))
+        self._estimate_all(self._pairer.command(key, numbers["effort"][index]))
 
     async def _on_robot_description(self, msg: String) -> None:
         xml = msg.data
@@ -292,8 +314,6 @@ class EstimatorNode(Node):
             self._model_problem = f"cannot build the estimator from robot_description: {problem}"
             self.get_logger().error(self._model_problem)
 
-    # ------------------------------------------------------------------ outputs
-
     def _estimate_all(self, samples: list) -> None:
         """Estimate and publish every paired sample in order; a RESET item restarts the filter first."""
         for sample in samples:
@@ -305,8 +325,7 @@ class EstimatorNode(Node):
                     self._outputs.publish(estimate, sample.tag, self._base_frame, self._config.ee_frame)
                     self._last = estimate
 
-    # ------------------------------------------------------------------ services
-
+    @locked
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         if self._estimator is None:
             response.success = False
@@ -320,6 +339,7 @@ class EstimatorNode(Node):
         response.message = "filter reset and tare cleared; the next joint state starts a new estimate"
         return response
 
+    @locked
     def _on_tare(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         """Start averaging τ_ext at rest and return (module docstring); refused without an estimator or in motion."""
         response.success = False
@@ -359,8 +379,6 @@ class EstimatorNode(Node):
         self.get_logger().warning(response.message)
         return response
 
-    # ------------------------------------------------------------------ diagnostics
-
     def _all_counts(self) -> Counter[str]:
         """Every reason counted since start: the node's, the pairing's and every estimator's."""
         counts = Counter(self._counts)
@@ -369,21 +387,13 @@ class EstimatorNode(Node):
             counts.update(self._estimator.counts)
         return counts
 
+    @locked
     def _publish_diagnostics(self) -> None:
         self._outputs.check_subscribers()
         now = self.get_clock().now()
-        seconds = now.nanoseconds / 1e9
-        counts = self._all_counts()
-        estimator = self._estimator
-        fresh = {key: total - self._diag_counts.get(key, 0) for key, total in counts.items()
-                 if total > self._diag_counts.get(key, 0)}
-        lost, period = self._pairer.lost, self._pairer.period
-        window = Window(seconds - self._diag_time, self._received - self._diag_received,
-                        self._outputs.published - self._diag_published, counts, fresh, lost - self._diag_lost,
-                        self._config.diagnostics.max_loss)
-        self._diag_time, self._diag_received, self._diag_published = seconds, self._received, self._outputs.published
-        self._diag_lost = lost
-        self._diag_counts = counts
+        estimator, lost, period = self._estimator, self._pairer.lost, self._pairer.period
+        window = self._windows.next(now.nanoseconds / 1e9, self._received, self._outputs.published,
+                                    self._all_counts(), lost, self._config.diagnostics.max_loss)
         reporting = estimator is None or estimator.observer.reports_covariance
         message = DiagnosticArray()
         message.header.stamp = now.to_msg()
@@ -416,19 +426,16 @@ def main(args: list[str] | None = None) -> int:
             raise
         return 0
     sys.setswitchinterval(SWITCH_INTERVAL)
-    executor = SingleThreadedExecutor()          # one path for inputs, estimates and services (module docstring)
-    executor.add_node(node)
     try:
-        executor.spin()
+        input_loop.spin(node)                     # inputs here, services on a thread of their own (module docstring)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except RuntimeError:
-        # rclpy's signal handler shuts the context down from its own thread; a spin building its wait set at that
-        # moment raises RCLError "the given context is not valid" (ros2/rclpy#398): a SIGTERM or Ctrl-C, not a fault.
+        # rclpy's signal handler shuts the context down from its own thread; a wait set built at that moment
+        # raises RCLError "the given context is not valid" (ros2/rclpy#398): a SIGTERM or Ctrl-C, not a fault.
         if rclpy.ok():
             raise
     finally:
-        executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
     return 0

@@ -27,58 +27,42 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from kvark_ros.core.config import load_config
-from kvark_ros.io import BagError, TopicNames
+from kvark_ros.io.bag_messages import TopicMessages, read_messages
+from kvark_ros.io.common import FLOAT64_ARRAY, JOINT_STATE
 
 if TYPE_CHECKING:
     from kvark_ros.cli import SubParsers
 
 NODE_NAME = "kvark_player"
-MESSAGE_TYPES = {"sensor_msgs/msg/JointState": JointState, "std_msgs/msg/Float64MultiArray": Float64MultiArray}
+MESSAGE_TYPES = {JOINT_STATE: JointState, FLOAT64_ARRAY: Float64MultiArray}
 __all__ = ["BagPlayer", "Recording", "read_recording", "main"]
 
 
 @dataclass(frozen=True)
 class Recording:
-    """The messages to play: (log time ns, topic index, CDR bytes) in log order; ``topics[i]`` is (config topic
-    name, message class)."""
+    """The messages to play (``kvark_ros.io.bag_messages.TopicMessages``, in log order) and the relative config
+    name each of their topics is published under."""
 
-    topics: tuple[tuple[str, type], ...]
-    messages: list[tuple[int, int, bytes]]
+    names: tuple[str, ...]
+    messages: TopicMessages
+
+    @property
+    def topics(self) -> tuple[tuple[str, type], ...]:
+        """(config topic name, rclpy message class) of each topic."""
+        return tuple((name, MESSAGE_TYPES[msgtype]) for name, msgtype in zip(self.names, self.messages.msgtypes))
 
     @property
     def duration(self) -> float:
         """Log time from the first message to the last, s."""
-        return (self.messages[-1][0] - self.messages[0][0]) / 1e9 if self.messages else 0.0
+        return self.messages.duration
 
 
 def read_recording(bag: str | Path, joint_states_topic: str, effort_commands_topic: str) -> Recording:
-    """The two input topics of ``bag`` (relative config names; the bag records them absolute); ``BagError``
-    naming the config key when one is missing or of a type the node does not take."""
-    from rosbags.rosbag2 import Reader
-    from rosbags.rosbag2.errors import ReaderError
-
-    wanted = TopicNames(joint_states=f"/{joint_states_topic.lstrip('/')}",
-                        effort_commands=f"/{effort_commands_topic.lstrip('/')}")
-    keys = {wanted.joint_states: (0, "input.joint_states_topic", joint_states_topic),
-            wanted.effort_commands: (1, "input.effort_commands_topic", effort_commands_topic)}
-    try:
-        with Reader(bag) as reader:
-            found = {c.topic: c for c in reader.connections if c.topic in keys}
-            for topic, (_, key, _name) in keys.items():
-                if topic not in found:
-                    raise BagError(f"{bag}: no topic {topic} in the bag (the config's {key}); its topics: "
-                                   f"{', '.join(sorted({c.topic for c in reader.connections}))}")
-                if found[topic].msgtype not in MESSAGE_TYPES:
-                    raise BagError(f"{bag}: {topic} carries {found[topic].msgtype}; the player publishes "
-                                   f"{' or '.join(MESSAGE_TYPES)}")
-            order = {id(connection): keys[topic][0] for topic, connection in found.items()}
-            messages = [(log_ns, order[id(connection)], bytes(raw))
-                        for connection, log_ns, raw in reader.messages(connections=list(found.values()))]
-    except (ReaderError, FileNotFoundError) as exc:
-        raise BagError(f"{bag}: cannot read the bag ({exc}); pass a rosbag2 folder or its .mcap/.db3 file") from exc
-    topics = tuple((name, MESSAGE_TYPES[found[topic].msgtype]) for topic, (_, _, name) in
-                   sorted(keys.items(), key=lambda item: item[1][0]))
-    return Recording(topics, messages)
+    """The two input topics of ``bag`` (relative config names; the bag records them absolute), read through
+    ``kvark_ros.io``: ``BagError`` naming the config key when one is missing or of a type the node does not take."""
+    topics = {f"/{joint_states_topic.lstrip('/')}": ("input.joint_states_topic", {JOINT_STATE}),
+              f"/{effort_commands_topic.lstrip('/')}": ("input.effort_commands_topic", {FLOAT64_ARRAY, JOINT_STATE})}
+    return Recording((joint_states_topic, effort_commands_topic), read_messages(bag, topics))
 
 
 class BagPlayer(Node):
@@ -105,12 +89,13 @@ class BagPlayer(Node):
         before each message with its bag time t (s since the first message); ``sent_ns`` holds when each went
         out. The lateness (s) of the most delayed message, so a caller can tell how closely the schedule was
         held."""
-        if not self.recording.messages:
+        messages = self.recording.messages
+        if not len(messages):
             return 0.0
-        first = self.recording.messages[0][0]
+        first = int(messages.log_ns[0])
         start = time.perf_counter()
         late = 0.0
-        for index, (log_ns, topic, raw) in enumerate(self.recording.messages):
+        for index, (log_ns, topic, raw) in enumerate(messages):
             bag_time = (log_ns - first) / 1e9
             due = start + bag_time / rate
             wait = due - time.perf_counter()

@@ -16,15 +16,18 @@ Topics (under the node's private namespace ``~/``), one message each per estimat
 
 The two fixed-axes wrench topics and the uncertainty topics are published only while someone
 subscribes (``check_subscribers``: every ``SUBSCRIBER_CHECK`` estimates and every ``/diagnostics``
-tick, so a new subscriber waits at most that long): a message built for nobody costs ~20 µs per
-sample in Python.
+tick, so a new subscriber waits at most that long): a message nobody reads would still cost its encoding
+and a middleware call per sample.
+
+Every message is published serialised: a template per topic (``kvark_ros.io.cdr_messages``, made once, and
+again for a new frame id) filled with the estimate's numbers, so no message object is built or converted per
+sample.
 
 QoS (``output.qos``): ``reliable`` (keep last ``input.queue_depth``) or ``sensor_data`` (best effort,
 volatile, same depth), for every topic here; ``/diagnostics`` stays reliable (the node's own).
 """
 from __future__ import annotations
 
-import array
 from typing import Any
 
 import numpy as np
@@ -33,17 +36,15 @@ from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Bool, Float64MultiArray, MultiArrayDimension, MultiArrayLayout
+from std_msgs.msg import Bool, Float64MultiArray
 
 from kvark_ros.core.estimation.estimator import Estimate
+from kvark_ros.io.cdr_messages import (Template, bool_message, float64_array_template, joint_state_template,
+                                       wrench_template)
 
 WRENCH_AXES = ("force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z")
 SUBSCRIBER_CHECK = 100          # estimates between checks whether anyone subscribes to the uncertainty topics
-
-
-def _doubles(values: np.ndarray) -> array.array:
-    """float64[] message field from a numpy array (rclpy takes array.array('d'), not ndarray)."""
-    return array.array("d", np.ascontiguousarray(values, dtype=np.float64).tobytes())
+Stamp = tuple[int, int]         # a header stamp: (sec, nanosec)
 
 
 def qos_profile(kind: str, depth: int) -> QoSProfile:
@@ -56,15 +57,6 @@ def qos_profile(kind: str, depth: int) -> QoSProfile:
     return QoSProfile(depth=depth)
 
 
-def _wrench(message: WrenchStamped, stamp_msg: Any, frame_id: str, values: np.ndarray) -> WrenchStamped:
-    """``message`` (reused: rclpy serializes at ``publish``) filled with one wrench (6,) N, N·m."""
-    message.header.stamp = stamp_msg
-    message.header.frame_id = frame_id
-    force, torque = message.wrench.force, message.wrench.torque
-    force.x, force.y, force.z, torque.x, torque.y, torque.z = values.tolist()
-    return message
-
-
 class EstimatePublishers:
     """The publishers of the estimate topics (module docstring) on ``node``, for ``joint_names``."""
 
@@ -73,14 +65,8 @@ class EstimatePublishers:
         n = len(self.names)
         self.uncertainty_wanted = self.base_wanted = self.ee_wanted = False
         self.published = 0
-        self._stddev_layout = MultiArrayLayout(dim=[MultiArrayDimension(label=",".join(self.names), size=n,
-                                                                         stride=n)])
-        self._covariance_layout = MultiArrayLayout(dim=[
-            MultiArrayDimension(label="row: " + ",".join(WRENCH_AXES), size=6, stride=36),
-            MultiArrayDimension(label="column: " + ",".join(WRENCH_AXES), size=6, stride=6)])
-        # No default QoS-event handlers on these eight publishers: rclpy adds each one's two (incompatible QoS,
-        # incompatible type; they only log) to the executor's wait set at every wake-up, twice per sample, which
-        # cost ~20 % of the node's CPU at 500 Hz. The input subscriptions keep theirs: there a wrong QoS loses data.
+        # No default QoS-event handlers on these eight publishers: they only log, and each would be a waitable
+        # that rclpy's executor adds to its wait set at every wake-up.
         events = PublisherEventCallbacks(use_default_callbacks=False)
 
         def create(kind: type, topic: str, profile: QoSProfile) -> Any:
@@ -94,36 +80,38 @@ class EstimatePublishers:
         self.covariance = create(Float64MultiArray, "~/external_wrench_covariance", qos)
         self.contact = create(Bool, "~/contact", qos)
         self.collision = create(Bool, "~/collision", qos)
-        # One message per topic, filled anew for every estimate (rclpy serializes at publish): the hot path
-        # builds no message objects, and the joint names are set once.
-        self._torque_msg = JointState(name=self.names)
-        self._wrench_msgs = (WrenchStamped(), WrenchStamped(), WrenchStamped())    # wrench.frame, base, ee axes
-        self._contact_msg, self._collision_msg = Bool(), Bool()
+        self._torque = joint_state_template(self.names)
+        self._stddev = float64_array_template([(",".join(self.names), n, n)], n)
+        self._covariance = float64_array_template([("row: " + ",".join(WRENCH_AXES), 6, 36),
+                                                   ("column: " + ",".join(WRENCH_AXES), 6, 6)], 36)
+        self._wrenches: dict[str, Template] = {}     # frame id -> template
+        self._flags = (bool_message(False), bool_message(True))
 
-    def publish(self, estimate: Estimate, stamp_msg: Any, base_frame: str, ee_frame: str) -> None:
+    def _wrench(self, stamp: Stamp, frame_id: str, values: np.ndarray) -> bytes:
+        """A WrenchStamped in ``frame_id``: ``values`` (6,) N, N·m."""
+        template = self._wrenches.get(frame_id)
+        if template is None:
+            template = self._wrenches[frame_id] = wrench_template(frame_id)
+        return template.fill({"sec": stamp[0], "nanosec": stamp[1], "wrench": values})
+
+    def publish(self, estimate: Estimate, stamp: Stamp, base_frame: str, ee_frame: str) -> None:
         """Every topic's message of one estimate, stamped with the input's stamp."""
-        torque = self._torque_msg
-        torque.header.stamp = stamp_msg
-        torque.effort = _doubles(estimate.tau_ext)
-        self.torque.publish(torque)
+        self.torque.publish(self._torque.fill({"sec": stamp[0], "nanosec": stamp[1], "effort": estimate.tau_ext}))
         axes = estimate.wrench_frame
-        in_axes, in_base, in_ee = self._wrench_msgs
-        wrench = _wrench(in_axes, stamp_msg, base_frame if axes == "base" else ee_frame, estimate.wrench)
+        wrench = self._wrench(stamp, base_frame if axes == "base" else ee_frame, estimate.wrench)
         self.wrench.publish(wrench)
         if self.base_wanted:
             self.wrench_base.publish(wrench if axes == "base" else
-                                     _wrench(in_base, stamp_msg, base_frame, estimate.wrench_in("base")))
+                                     self._wrench(stamp, base_frame, estimate.wrench_in("base")))
         if self.ee_wanted:
             self.wrench_ee.publish(wrench if axes == "end_effector" else
-                                   _wrench(in_ee, stamp_msg, ee_frame, estimate.wrench_in("end_effector")))
+                                   self._wrench(stamp, ee_frame, estimate.wrench_in("end_effector")))
         if estimate.tau_cov is not None and self.uncertainty_wanted:
             stddev = np.sqrt(np.maximum(np.diag(estimate.tau_cov), 0.0))
-            self.stddev.publish(Float64MultiArray(layout=self._stddev_layout, data=_doubles(stddev)))
-            self.covariance.publish(Float64MultiArray(layout=self._covariance_layout,
-                                                      data=_doubles(estimate.wrench_cov.ravel())))
-        self._contact_msg.data, self._collision_msg.data = estimate.contact, estimate.collision
-        self.contact.publish(self._contact_msg)
-        self.collision.publish(self._collision_msg)
+            self.stddev.publish(self._stddev.fill({"data": stddev}))
+            self.covariance.publish(self._covariance.fill({"data": estimate.wrench_cov.ravel()}))
+        self.contact.publish(self._flags[bool(estimate.contact)])
+        self.collision.publish(self._flags[bool(estimate.collision)])
         self.published += 1
         if self.published % SUBSCRIBER_CHECK == 0:
             self.check_subscribers()

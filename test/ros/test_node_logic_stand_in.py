@@ -609,7 +609,9 @@ def test_joint_state_effort_as_torque_source(ros, make_node, contact_bag):
     assert len(outputs(ros).stamp) == 99 and node._counts.total() == 0
 
 
-def test_main_spins_and_shuts_down_cleanly(ros, model_dir, tmp_path):
+def test_main_spins_and_shuts_down_cleanly(ros, model_dir, tmp_path, monkeypatch):
+    """main() builds the node from a parameter file, runs it (here: a stop at once), then destroys it and shuts
+    rclpy down; a bad config is one line and exit code 1."""
     document = {"kvark_estimator": {"ros__parameters": yaml.safe_load(
         (ROOT / "config" / "panda.yaml").read_text())["kvark_estimator"]["ros__parameters"]}}
     document["kvark_estimator"]["ros__parameters"]["residual_model"]["model_dir"] = str(model_dir)
@@ -623,7 +625,7 @@ def test_main_spins_and_shuts_down_cleanly(ros, model_dir, tmp_path):
         assert node._estimator is not None
         raise KeyboardInterrupt
 
-    ros.core.SPIN_HOOK[0] = interrupt
+    monkeypatch.setattr(ros.node.input_loop, "spin", interrupt)
     assert ros.node.main(["estimator_node", "--ros-args", "--params-file", str(params)]) == 0
     assert seen and seen[0].destroyed and not ros.rclpy.ok()
     ros.core.reset()
@@ -645,17 +647,17 @@ def test_callback_cost(ros, make_node, contact_bag, record_property):
 
 def callback_cost(ros, make_node, messages) -> dict[str, float]:
     """p50/p99 µs of the joint-state callback, of the command callback (which runs the estimator
-    for the waiting state) and of both per sample, over the bag's messages."""
+    for the waiting state) and of both per sample, over the bag's messages, each taken as CDR bytes."""
     make_node()
     clock = time.perf_counter_ns
     cost = {"/joint_states": [], "/effort_commands": []}
     subscriptions = {topic: ros.core.GRAPH.subscriptions[topic][0].callback for topic in TOPICS}
     for log_ns, topic, msg in messages:
         ros.core.set_time(nanoseconds=log_ns)
-        callback = subscriptions[topic]
+        callback, raw = subscriptions[topic], ros.core.to_cdr(msg)
         info = {"source_timestamp": log_ns, "received_timestamp": log_ns}
         start = clock()
-        callback(msg, info)
+        callback(raw, info)
         cost[topic].append((clock() - start) / 1e3)
     js, cmd = np.array(cost["/joint_states"][2:]), np.array(cost["/effort_commands"][2:])
     both = js + cmd

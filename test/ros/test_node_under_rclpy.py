@@ -116,19 +116,19 @@ def test_a_stop_racing_rclpy_ends_the_node_with_0(tmp_path, monkeypatch, stage, 
     this process, with the real rclpy: spin or the constructor shuts the context down, then raises as rclpy does.
     ``main()`` returns 0; the same error while the context is still valid is a fault and propagates."""
     from rclpy._rclpy_pybind11 import RCLError
-    from kvark_ros.ros import estimator_node
+    from kvark_ros.ros import estimator_node, input_loop
 
     parameters = _parameters_file(tmp_path)
     for key, value in node_check.local_domain(next(DOMAINS), tmp_path / "log").items():
         monkeypatch.setenv(key, value)
 
-    def stopped(*_executor) -> None:
+    def stopped(*_loop) -> None:
         if context_shut_down:
             rclpy.shutdown()
         raise RCLError(STOPPED_AT[stage])
 
     if stage == "spin":
-        monkeypatch.setattr(SingleThreadedExecutor, "spin", stopped)
+        monkeypatch.setattr(input_loop.InputLoop, "spin", stopped)
     else:
         monkeypatch.setattr(estimator_node, "EstimatorNode", stopped)
     arguments = ["estimator_node", "--ros-args", "--params-file", str(parameters)]
@@ -307,13 +307,14 @@ def test_bad_input_on_the_real_node_is_counted_and_never_published(live):
 
 
 def test_play_refuses_a_bag_without_the_configured_topic(tmp_path):
-    """``kvark play`` names the config key whose topic the bag lacks, and lists the bag's topics."""
+    """``kvark play`` reads bags through ``kvark_ros.io``: it names the config key whose topic the bag lacks and the
+    nearest topic of its type, and says what a path that is no bag is."""
     from kvark_ros.io import BagError
     from kvark_ros.ros.player import read_recording
-    with pytest.raises(BagError, match=r"no topic /arm/joint_states in the bag \(the config's "
-                                       r"input.joint_states_topic\); its topics: .*/joint_states"):
+    with pytest.raises(BagError, match=r"topic /arm/joint_states \(input.joint_states_topic\) is absent; the bag's "
+                                       r"JointState topics: .*did you mean '/joint_states'"):
         read_recording(BAG, "arm/joint_states", "effort_commands")
-    with pytest.raises(BagError, match="cannot read the bag"):
+    with pytest.raises(BagError, match="missing: no such bag"):
         read_recording(tmp_path / "missing", "joint_states", "effort_commands")
     recording = read_recording(BAG, "joint_states", "effort_commands")
     assert len(recording.messages) == 5000 and recording.duration == pytest.approx(5.0, abs=0.01)

@@ -9,9 +9,13 @@ the test moves:
   rosidl-generated Python classes check them (``float64[]`` fields take ``array.array('d')`` or
   a sequence of floats, never a numpy array; ``bool`` fields take only ``bool``; ``byte``
   fields take a one-byte ``bytes``);
+- serialised messages are CDR as rosbags writes it (:func:`to_cdr`, :func:`from_cdr`): a ``raw=True``
+  subscription gets the bytes of what is delivered, and ``publish`` takes a message's bytes as rclpy
+  does (the graph keeps the message they decode to);
 - one in-process graph: ``publish`` calls every subscription of the resolved topic name
-  synchronously, in the caller's thread (no executor, no QoS, no serialisation); an ``async def``
-  callback is run to completion before the call returns;
+  synchronously, in the caller's thread (no executor, no QoS, no wait set: the node's input loop
+  is not faked, its subscriptions' callbacks are called directly); an ``async def`` callback is run
+  to completion before the call returns;
 - one simulated clock shared by every node (like ``use_sim_time``), moved by the test with
   :func:`set_time`, which also fires the timers that fall due;
 - parameters follow rclpy's rules (declare/override/descriptor/read-only/range/callbacks).
@@ -29,7 +33,9 @@ from collections import UserList
 from collections.abc import Sequence, Set
 from typing import Any, Callable
 
+import numpy as np
 import yaml
+from rosbags.typesys import Stores, get_typestore
 
 STAND_IN = True
 
@@ -125,6 +131,60 @@ class Message:
         return clone
 
 
+# --------------------------------------------------------------------------- serialised messages
+
+_STORE = get_typestore(Stores.ROS2_JAZZY)
+
+
+def msgtype(kind: type) -> str:
+    """The ROS name of a stand-in message class: ``sensor_msgs/msg/JointState``."""
+    return f"{kind.__module__.replace('.', '/')}/{kind.__name__}"
+
+
+def _to_rosbags(message: Message) -> Any:
+    values = {}
+    for name, kind in message.FIELDS.items():
+        value = getattr(message, name)
+        if isinstance(kind, type):
+            value = _to_rosbags(value)
+        elif isinstance(kind, list):
+            value = [_to_rosbags(item) for item in value]
+        elif kind == "float64[]":
+            value = np.array(value, dtype=np.float64)
+        elif kind == "byte":
+            value = value[0]
+        values[name] = value
+    return _STORE.types[msgtype(type(message))](**values)
+
+
+def _from_rosbags(value: Any, kind: Any) -> Any:
+    if isinstance(kind, type):
+        return kind(**{name: _from_rosbags(getattr(value, name), inner) for name, inner in kind.FIELDS.items()})
+    if isinstance(kind, list):
+        return [_from_rosbags(item, kind[0]) for item in value]
+    if kind == "float64[]":
+        return array.array("d", np.asarray(value, dtype=np.float64).tobytes())
+    if kind == "float64":
+        return float(value)
+    if kind == "bool":
+        return bool(value)
+    if kind == "byte":
+        return bytes([int(value)])
+    if kind == "string[]":
+        return [str(item) for item in value]
+    return value if kind == "string" else int(value)
+
+
+def to_cdr(message: Message) -> bytes:
+    """A stand-in message serialised as CDR (little endian), by rosbags."""
+    return bytes(_STORE.serialize_cdr(_to_rosbags(message), msgtype(type(message))))
+
+
+def from_cdr(raw: bytes, kind: type) -> Message:
+    """The stand-in message of class ``kind`` that CDR bytes ``raw`` hold."""
+    return _from_rosbags(_STORE.deserialize_cdr(raw, msgtype(kind)), kind)
+
+
 # --------------------------------------------------------------------------- context and clock
 
 
@@ -136,7 +196,6 @@ class _Context:
 
 CONTEXT = _Context()
 _CLOCK_NS = [0]
-SPIN_HOOK: list[Callable[[Any], None] | None] = [None]
 
 
 def now_ns() -> int:
@@ -232,20 +291,26 @@ class Graph:
 
         ``published_ns``: when the message was published (its message info's ``source_timestamp``);
         default now. A test that delivers messages late or out of order passes their publication time,
-        as DDS reports it; the stand-in clock is the reception time.
+        as DDS reports it; the stand-in clock is the reception time. A ``raw`` subscription gets the
+        message's CDR bytes (``message`` may be them already).
         """
         self.sequence += 1
         info = {"source_timestamp": now_ns() if published_ns is None else int(published_ns),
                 "received_timestamp": now_ns(), "publication_sequence_number": self.sequence,
                 "reception_sequence_number": self.sequence}
         for subscription in list(self.subscriptions.get(topic, ())):
-            if not isinstance(message, subscription.msg_type):
+            if not isinstance(message, (subscription.msg_type, bytes)):
                 raise TypeError(f"stand-in: {topic} carries {subscription.msg_type.__name__}, "
                                 f"got {type(message).__name__}")
+            taken = message
+            if subscription.raw and not isinstance(message, bytes):
+                taken = to_cdr(message)
+            elif not subscription.raw and isinstance(message, bytes):
+                taken = from_cdr(message, subscription.msg_type)
             if subscription.with_message_info:
-                run_to_completion(subscription.callback(message, dict(info)))
+                run_to_completion(subscription.callback(taken, dict(info)))
             else:
-                run_to_completion(subscription.callback(message))
+                run_to_completion(subscription.callback(taken))
 
     def published(self, topic: str) -> list[Any]:
         """Every message published on ``topic`` (resolved name) so far, in order."""
@@ -283,7 +348,6 @@ def reset() -> None:
     """Forget every node, the clock and the context (between tests)."""
     GRAPH.__init__()
     _CLOCK_NS[0] = 0
-    SPIN_HOOK[0] = None
     CONTEXT.__init__()
 
 

@@ -1,6 +1,6 @@
 """Stand-in for rclpy, owned by the kvark_ros test suite. This is NOT ROS.
 
-Implements only what ``kvark_ros/ros`` uses (init/shutdown/try_shutdown/ok/spin, Node, QoS,
+Implements only what ``kvark_ros/ros`` uses (init/shutdown/try_shutdown/ok, Node, QoS,
 parameters, clock, logging) on the in-process machinery of ``ros_stand_in_core``.
 """
 from __future__ import annotations
@@ -8,7 +8,6 @@ from __future__ import annotations
 from typing import Any
 
 import ros_stand_in_core as _core
-from rclpy.executors import ExternalShutdownException
 
 STAND_IN = True
 
@@ -33,16 +32,3 @@ def shutdown(*, context: Any = None, uninstall_handlers: bool | None = None) -> 
 
 def try_shutdown(*, context: Any = None, uninstall_handlers: bool | None = None) -> None:
     _core.CONTEXT.initialized = False
-
-
-def spin(node: Any, executor: Any = None) -> None:
-    """No executor here: calls the test's hook (``ros_stand_in_core.SPIN_HOOK[0]``), if any, once."""
-    if not _core.CONTEXT.initialized:
-        raise ExternalShutdownException()
-    hook = _core.SPIN_HOOK[0]
-    if hook is not None:
-        hook(node)
-
-
-def spin_once(node: Any, *, executor: Any = None, timeout_sec: float | None = None) -> None:
-    return None

@@ -5,3 +5,8 @@ from __future__ import annotations
 class PublisherEventCallbacks:
     def __init__(self, *, use_default_callbacks: bool = True, **callbacks: object) -> None:
         self.use_default_callbacks = use_default_callbacks
+
+
+class SubscriptionEventCallbacks:
+    def __init__(self, *, use_default_callbacks: bool = True, **callbacks: object) -> None:
+        self.use_default_callbacks = use_default_callbacks

@@ -6,7 +6,7 @@ class ExternalShutdownException(Exception):
 
 
 class SingleThreadedExecutor:
-    """Stand-in: ``spin`` runs the test's spin hook once, like ``rclpy.spin`` here."""
+    """Stand-in: nothing to wait on (the graph calls back synchronously), so ``spin`` returns at once."""
 
     def __init__(self, *, context: object = None) -> None:
         self.nodes: list = []
@@ -16,9 +16,7 @@ class SingleThreadedExecutor:
         return True
 
     def spin(self) -> None:
-        import rclpy
-        for node in self.nodes:
-            rclpy.spin(node)
+        return None
 
     def shutdown(self, timeout_sec: float | None = None) -> bool:
         return True

@@ -40,18 +40,24 @@ class Publisher:
         return len(_core.GRAPH.subscriptions.get(self.topic_name, ()))
 
     def publish(self, msg: Any) -> None:
+        """A message, or its CDR bytes (rclpy's ``publish_raw``): the graph keeps and delivers the message."""
         if self.destroyed:
             raise RuntimeError(f"stand-in: publisher of {self.topic_name} was destroyed")
-        if not isinstance(msg, self.msg_type):
+        if isinstance(msg, bytes):
+            msg = _core.from_cdr(msg, self.msg_type)
+        elif not isinstance(msg, self.msg_type):
             raise TypeError(f"Expected {self.msg_type}, got {type(msg)}")
-        msg = copy.deepcopy(msg)            # rclpy serializes at publish: the caller may reuse its message
+        else:
+            msg = copy.deepcopy(msg)        # rclpy serializes at publish: the caller may reuse its message
         self.messages.append(msg)
         _core.GRAPH.deliver(self.topic_name, msg)
 
 
 class Subscription:
-    def __init__(self, msg_type: type, topic: str, callback: Callable[..., None], qos_profile: Any) -> None:
+    def __init__(self, msg_type: type, topic: str, callback: Callable[..., None], qos_profile: Any,
+                 raw: bool = False, callback_group: Any = None) -> None:
         self.msg_type, self.topic_name, self.callback, self.qos_profile = msg_type, topic, callback, qos_profile
+        self.raw, self.callback_group = raw, callback_group
         # As rclpy decides (Subscription.callback setter): one argument, or the message and its info.
         try:
             inspect.signature(callback).bind(object())
@@ -309,8 +315,9 @@ class Node:
         return publisher
 
     def create_subscription(self, msg_type: type, topic: str, callback: Callable[[Any], None], qos_profile: Any,
-                            **options: Any) -> Subscription:
-        subscription = Subscription(msg_type, self._resolve(topic), callback, _check_qos(qos_profile))
+                            *, callback_group: Any = None, raw: bool = False, **options: Any) -> Subscription:
+        subscription = Subscription(msg_type, self._resolve(topic), callback, _check_qos(qos_profile), raw,
+                                    callback_group)
         _core.GRAPH.subscriptions.setdefault(subscription.topic_name, []).append(subscription)
         self._subscriptions.append(subscription)
         return subscription

@@ -1,0 +1,1 @@
+"""Stand-in rclpy.impl (test suite, not ROS)."""

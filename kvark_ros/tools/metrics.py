@@ -7,6 +7,7 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtri
 
+from kvark_ros.core.contact_events import CONTACT_TORQUE, contact_free, contacts, touching
 from kvark_ros.core.estimation.contact import chi2_quantile
 
 Z95 = 1.96                                  # half-width of the 95 % interval in σ (coverage95, as it always was)
@@ -147,19 +148,14 @@ def calibration_metrics(error: np.ndarray, std: np.ndarray, mahalanobis: np.ndar
                             "vector": None if vector is None else _rounded(np.array(vector))}}
 
 
-CONTACT_TORQUE = 0.5     # N·m: a true external torque above this on any joint is contact
-SETTLE = 0.2             # s after a contact ends before motion counts as contact-free again
-
-
 def contact_metrics(stamp: np.ndarray, flag: np.ndarray, valid: np.ndarray, truth_tau: np.ndarray,
                     band: np.ndarray | None = None) -> dict[str, Any]:
     """metrics.json's contact figures of one observer's flag against the true external torque.
 
-    Contact where any joint's true |τ_ext| exceeds CONTACT_TORQUE. ``false_contact_share``: the share
-    of contact-free samples (not in contact and at least SETTLE s after the last contact) that are
-    flagged. Each onset (a sample in contact after one that is not) is detected when the flag rises
-    before the contact ends; ``detection_delay`` (s) is from the onset to the first flagged sample (with its mean
-    and median), ``missed_onsets`` counts the others. None where the run has no such samples or onsets.
+    Touching, contact-free samples and contacts as ``core.contact_events`` defines them. ``false_contact_share``: the
+    share of contact-free samples that are flagged. Each contact is detected when the flag rises before it ends;
+    ``detection_delay`` (s) is from its onset to the first flagged sample (with its mean and median),
+    ``missed_onsets`` counts the others. None where the run has no such samples or onsets.
 
     ``band`` (n,) N·m, the static friction band F_s (docs/method.md §4.11): a joint at rest holds any torque within
     ±F_s, so a push is visible only once it exceeds that. ``detection_delay_from_band`` (s) is counted from the
@@ -168,15 +164,12 @@ def contact_metrics(stamp: np.ndarray, flag: np.ndarray, valid: np.ndarray, trut
     those that do and are never flagged.
     """
     rows = valid & np.isfinite(truth_tau).all(axis=1)
-    stamp, flag, touching = stamp[rows], flag[rows], (np.abs(truth_tau[rows]) > CONTACT_TORQUE).any(axis=1)
-    last_touch = np.maximum.accumulate(np.where(touching, stamp, -np.inf))
-    free = ~touching & (stamp - last_touch > SETTLE)
+    stamp, flag, touch = stamp[rows], flag[rows], touching(truth_tau[rows])
+    free = contact_free(stamp, touch)
     beyond = None if band is None else (np.abs(truth_tau[rows]) > np.maximum(band, CONTACT_TORQUE)).any(axis=1)
     delays, band_delays = [], []
     missed = within_band = missed_beyond = 0
-    for onset in np.flatnonzero(touching[1:] & ~touching[:-1]) + 1:
-        ends = np.flatnonzero(~touching[onset:])
-        end = onset + (ends[0] if len(ends) else len(touching) - onset)
+    for onset, end in contacts(stamp, touch):
         flagged = np.flatnonzero(flag[onset:end])
         if len(flagged):
             delays.append(float(stamp[onset + flagged[0]] - stamp[onset]))

@@ -22,7 +22,7 @@ from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.core.estimation.model_store import TrainedModel
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.tools.colours import TRUTH_COLOUR, observer_colour
-from kvark_ros.tools.metrics import CONTACT_TORQUE, SETTLE, Z95
+from kvark_ros.tools.metrics import Z95
 
 MAX_POINTS = 4000        # scatter points per joint, so figures stay light
 DPI = 90
@@ -90,24 +90,6 @@ def plot_training(robot: RobotModel, trained: TrainedModel, segments: Sequence[E
     path = out / "training_residuals.png"
     fig.savefig(path, **PNG)
     return [path]
-
-
-def contact_onsets(stamp: np.ndarray, tau_true: np.ndarray, threshold: float = CONTACT_TORQUE,
-                   quiet: float = SETTLE, limit: int = MAX_INSETS) -> np.ndarray:
-    """Stamps of the first ``limit`` contact onsets: a sample where the true |τ_ext| (T, n) of some joint exceeds
-    ``threshold`` N·m (metrics' contact) after at least ``quiet`` s with every joint below it, so that a truth
-    chattering about the threshold gives one onset, not one per crossing. A contact from the first sample has no
-    onset (it was never seen starting)."""
-    touching = (np.abs(np.nan_to_num(tau_true)) > threshold).any(axis=1)
-    onsets = []
-    last_touch = -np.inf
-    for k in np.flatnonzero(touching):
-        if k > 0 and not touching[k - 1] and stamp[k] - last_touch > quiet:
-            onsets.append(stamp[k])
-            if len(onsets) == limit:
-                break
-        last_touch = stamp[k]
-    return np.array(onsets)
 
 
 def _styles(names: Sequence[str], best: str | None) -> dict[str, dict]:

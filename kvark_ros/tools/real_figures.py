@@ -16,11 +16,12 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from kvark_ros.core.config import EstimatorConfig
+from kvark_ros.core.contact_events import contact_onsets
 from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.core.estimation.model_store import TrainedModel
 from kvark_ros.core.files import write_text_atomically
 from kvark_ros.tools.colours import colour_word
-from kvark_ros.tools.plots import contact_onsets, plot_error_bars, plot_reliability, plot_time_histories
+from kvark_ros.tools.plots import MAX_INSETS, plot_error_bars, plot_reliability, plot_time_histories
 from kvark_ros.tools.real_pushes import Pushes
 from kvark_ros.tools.replay import run_observer
 from kvark_ros.tools.report import PLOTTED_OBSERVERS, best_observer
@@ -69,7 +70,7 @@ def write_real_figures(out: Path, config: EstimatorConfig, held: EstimatorInputs
             out / "joint_torques_pushes.png", config, pushes.inputs, truth, models["augmented"],
             results["pushes"]["observers"], "τ_ext (N·m)",
             "External joint torque on the held-out part with known pushes superposed, augmented model",
-            contact_onsets(pushes.inputs.stamp, truth))
+            contact_onsets(pushes.inputs.stamp, truth, MAX_INSETS))
         figures.append(path)
         notes.append(f"with the pushes (`joint_torques_pushes.png`, their true τ_ext black on top): "
                      f"{', '.join(f'{name} ({colour_word(name)})' for name in drawn)}"

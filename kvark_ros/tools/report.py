@@ -6,15 +6,14 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from kvark_ros.core.contact_events import contact_onsets, touching
 from kvark_ros.core.files import write_text_atomically
 from kvark_ros.tools.colours import colour_word
-from kvark_ros.tools.metrics import CONTACT_TORQUE
 from kvark_ros.tools.plots import (
     HIGHLIGHTED,
     INSET_HALF_WIDTH,
     MAX_INSETS,
     UNOBSERVED_LABEL,
-    contact_onsets,
     plot_error_bars,
     plot_errors,
     plot_reliability,
@@ -110,8 +109,7 @@ def wrench_truth_note(truth: Any) -> str:
     if not observed.any():
         return (f"The wrist F/T sensor observes the external wrench on none of the {int(known.sum())} samples ({why}): "
                 f"no true wrench, force and moment RMSE {NOT_AT_SENSOR}.")
-    touching = (np.abs(np.nan_to_num(truth.tau_ext)) > CONTACT_TORQUE).any(axis=1)
-    in_contact = int((observed & touching).sum())
+    in_contact = int((observed & touching(truth.tau_ext)).sum())
     return (f"Force and moment RMSE only over the {int(observed.sum())} of {int(known.sum())} samples where the "
             f"wrist F/T sensor observes the external wrench: on the other {int(known.sum() - observed.sum())} ({why}) "
             "there is no true wrench. " + (f"{in_contact} of the observed samples are in contact." if in_contact else
@@ -128,7 +126,7 @@ def write_replay_report(out: Path, metrics: Mapping[str, Any], robot: Any, input
     plotted = ({r.name: r for r in results if r.name in PLOTTED_OBSERVERS or r.name == best}
                or {results[0].name: results[0]})
     tau = {n: np.where(r.valid[:, None], r.tau_ext, np.nan) for n, r in plotted.items()}
-    onsets = contact_onsets(inputs.stamp, truth.tau_ext) if truth is not None else np.zeros(0)
+    onsets = contact_onsets(inputs.stamp, truth.tau_ext, MAX_INSETS) if truth is not None else np.zeros(0)
     names = robot.joint_names
     wrench_truth = None if truth is None or truth.wrench is None else truth.wrench
     unobserved = (None if wrench_truth is None else

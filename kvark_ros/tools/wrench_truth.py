@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from kvark_ros.core.estimation.robot_model import RobotModel
-from kvark_ros.tools.metrics import CONTACT_TORQUE
+from kvark_ros.core.contact_events import CONTACT_TORQUE
 
 UNEXPLAINED_SHARE = 0.1
 

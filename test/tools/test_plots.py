@@ -20,7 +20,8 @@ from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.gap.diagnosis_plots import effect_contributions, plot_diagnosis
 from kvark_ros.gap.diagnosis_report import Diagnosis
 from kvark_ros.gap.effects import Priors, Signals, Term
-from kvark_ros.tools.plots import INSET_HALF_WIDTH, MAX_INSETS, contact_onsets, plot_errors, plot_time_histories
+from kvark_ros.core.contact_events import contact_onsets
+from kvark_ros.tools.plots import INSET_HALF_WIDTH, MAX_INSETS, plot_errors, plot_time_histories
 from kvark_ros.tools.report import best_observer, write_replay_report
 from kvark_ros.tools.synthetic import synthetic_stream
 
@@ -45,23 +46,6 @@ def _panels(fig: Figure) -> list[Axes]:
 
 def _insets(ax: Axes) -> list[Axes]:
     return list(ax.child_axes)
-
-
-# --------------------------------------------------------------------------- onsets
-
-def test_contact_onsets_are_the_first_samples_above_the_threshold_after_a_quiet_spell():
-    stamp = 100.0 + np.arange(int(6 * RATE)) / RATE
-    # a contact at 1 s that dips below the threshold for 20 ms (one contact, not two), another at 3 s on another
-    # joint, a third at 4.5 s
-    truth = _truth(stamp, [(101.0, 101.5, 0, 2.0), (101.52, 102.0, 0, 2.0), (103.0, 103.5, 2, -1.0),
-                           (104.5, 104.8, 1, 1.0)])
-    np.testing.assert_allclose(contact_onsets(stamp, truth), [101.0, 103.0, 104.5])
-    np.testing.assert_allclose(contact_onsets(stamp, truth, limit=2), [101.0, 103.0])
-    # touching from the first sample: never seen starting, no onset; NaN truth samples are not contact
-    assert len(contact_onsets(stamp, _truth(stamp, [(100.0, 102.0, 1, 3.0)]))) == 0
-    gappy = truth.copy()
-    gappy[: int(0.5 * RATE)] = np.nan
-    np.testing.assert_allclose(contact_onsets(stamp, gappy), [101.0, 103.0, 104.5])
 
 
 # --------------------------------------------------------------------------- replay figures

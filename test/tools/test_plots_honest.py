@@ -22,7 +22,8 @@ from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.observer_catalog import OBSERVER_NAMES
 from kvark_ros.io.alignment import read_inputs
 from kvark_ros.tools.colours import OBSERVER_COLOURS, TRUTH_COLOUR, colour_word, observer_colour
-from kvark_ros.tools.metrics import CONTACT_TORQUE, observer_metrics, wrench_metrics
+from kvark_ros.core.contact_events import CONTACT_TORQUE
+from kvark_ros.tools.metrics import observer_metrics, wrench_metrics
 from kvark_ros.tools.plots import (BAND_LABEL, BAND_ROOM, CLIPPED_NOTE, UNOBSERVED_LABEL, plot_reliability,
                                    plot_time_histories, plot_training)
 from kvark_ros.tools.real_figures import write_real_figures

@@ -3,9 +3,13 @@
 A table is named numeric columns. A CSV or text log has one header row naming its columns (lines
 before it that start with ``#`` are comments); the delimiter is a semicolon when the header has more
 of them than commas (a spreadsheet's export where the decimal separator is a comma), else a comma
-when the header has one, else whitespace; an empty CSV cell reads as NaN, a decimal comma is an error.
-A log without a header row (``header=False``) has its columns named by position, ``1`` for the first
-(as a MATLAB or awk script counts them); the first data row then decides the delimiter.
+when the header has one, else whitespace; an empty CSV cell reads as NaN. A line that holds no row (too
+few or too many fields: a logger killed mid-line, two lines run together; a cell that is not a number: a
+message or a repeated header in the log) is left out and named in ``Table.unreadable`` with its line number,
+the rest is read; a log whose every line is unreadable is an error, and so is a decimal comma (an export
+setting, the whole file's). A log without a header row (``header=False``) has its columns named by position,
+``1`` for the first (as a MATLAB or awk script counts them); the first data row decides the delimiter and the
+field count most of its lines have the number of columns.
 NPZ and MAT files hold arrays by name: a vector is the column ``name``, a 2-D array a block whose column
 k is ``name:k``. Samples run along a 2-D array's longer axis, so MATLAB's (1, T) vectors and (k, T)
 matrices read like (T,) and (T, k) ones.
@@ -23,23 +27,46 @@ import numpy as np
 
 from kvark_ros.core.hints import did_you_mean, shorten
 from kvark_ros.io.common import FloatArray, PathLike
-from kvark_ros.io.runs import BagError, bag_error
+from kvark_ros.io.runs import bag_error
 
-__all__ = ["FORMATS", "Table", "read_table", "table_format"]
+__all__ = ["FORMATS", "TRUNCATED_END", "Table", "Unreadable", "read_table", "table_format"]
 
 FORMATS = ("csv", "npz", "mat")
 _SUFFIXES = {".csv": "csv", ".txt": "csv", ".log": "csv", ".tsv": "csv", ".dat": "csv", ".npz": "npz",
              ".mat": "mat"}
 _SHOWN_NAMES = 40  # columns listed in a "missing column" error
+WIDTH = "too few or too many fields"
+NOT_A_NUMBER = "a cell that is not a number"
+TRUNCATED_END = "truncated last line"
+
+
+@dataclass(frozen=True)
+class Unreadable:
+    """Lines of a text log left out for one reason: their numbers (1 for the file's first line) and what the
+    first one shows."""
+
+    reason: str
+    lines: list[int]
+    detail: str
 
 
 @dataclass(frozen=True)
 class Table:
-    """Named numeric columns of one file; ``skipped`` names arrays that are not numeric vectors or matrices."""
+    """Named numeric columns of one file; ``skipped`` names arrays that are not numeric vectors or matrices.
+
+    ``lines``: the file line of each row (text logs; None for NPZ/MAT, whose rows are counted from 1);
+    ``unreadable``: the text lines left out, per reason (module docstring).
+    """
 
     path: Path
     columns: dict[str, FloatArray]
     skipped: dict[str, str] = field(default_factory=dict)
+    lines: np.ndarray | None = None
+    unreadable: tuple[Unreadable, ...] = ()
+
+    def where(self, row: int) -> str:
+        """Row ``row`` (0 for the first) as a user finds it: ``line 12`` of a text log, ``row 13`` of an array."""
+        return f"line {int(self.lines[row])}" if self.lines is not None else f"row {row + 1}"
 
     def describe(self) -> str:
         """The column names, shortened for an error message."""
@@ -90,14 +117,26 @@ def read_table(path: PathLike, fmt: str | None = None, header: bool = True) -> T
     return _from_arrays(given, _load_npz(given) if kind == "npz" else _load_mat(given))
 
 
-def _read_text(path: Path, header: bool) -> Table:
-    """A delimited text file with a header row, or without one (module docstring)."""
+def _decoded(path: Path) -> str:
+    """The file's text; bytes that are not UTF-8 read as U+FFFD (their lines then hold no number), unless the
+    first line has them: then it is no text file."""
     try:
-        lines = path.read_text().splitlines()
-    except UnicodeDecodeError as exc:
-        raise bag_error(path, "is not a text file", "pass --format npz or mat for binary files") from exc
+        data = path.read_bytes()
     except OSError as exc:
         raise bag_error(path, f"cannot read it ({exc.strerror})", "check the file permissions") from exc
+    try:
+        return data.decode()
+    except UnicodeDecodeError:
+        text = data.decode(errors="replace")
+    first = next((line for line in text.splitlines() if line.strip()), "")
+    if "\ufffd" in first or "\x00" in first:
+        raise bag_error(path, "is not a text file", "pass --format npz or mat for binary files")
+    return text
+
+
+def _read_text(path: Path, header: bool) -> Table:
+    """A delimited text file with a header row, or without one (module docstring)."""
+    lines = _decoded(path).split("\n")       # not splitlines: garbage may hold the other line breaks it knows
     numbered = [(k + 1, line) for k, line in enumerate(lines) if line.strip() and not line.lstrip().startswith("#")]
     if not numbered:
         raise bag_error(path, "is empty (no header row)" if header else "is empty",
@@ -105,8 +144,9 @@ def _read_text(path: Path, header: bool) -> Table:
     header_line, first = numbered[0]
     delimiter = ";" if first.count(";") > first.count(",") else "," if "," in first else None
     if not header:
-        names = [str(k + 1) for k in range(len(first.split(delimiter)))]
-        return Table(path, _columns(path, numbered, names, delimiter, "the first row"))
+        counts = np.bincount([len(line.split(delimiter)) for _, line in numbered])
+        names = [str(k + 1) for k in range(int(np.argmax(counts)))]
+        return _table(path, numbered, names, delimiter, "most lines")
     names = [name.strip().strip('"').strip("'") for name in first.split(delimiter)]
     if len(names) > 1 and all(_is_number(name) for name in names):
         raise bag_error(path, f"line {header_line}: the first row is numbers, not column names",
@@ -120,7 +160,7 @@ def _read_text(path: Path, header: bool) -> Table:
     body = numbered[1:]
     if not body:
         raise bag_error(path, "has a header but no data rows", "export the log with its data")
-    return Table(path, _columns(path, body, names, delimiter, "the header"))
+    return _table(path, body, names, delimiter, "the header")
 
 
 def _is_number(text: str) -> bool:
@@ -131,50 +171,73 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def _columns(path: Path, body: list[tuple[int, str]], names: list[str], delimiter: str | None,
-             first: str) -> dict[str, FloatArray]:
-    """The data rows as one contiguous array per named column (``first``: the row that set the column count)."""
+def _table(path: Path, body: list[tuple[int, str]], names: list[str], delimiter: str | None, first: str) -> Table:
+    """The data rows as one contiguous array per named column (``first``: what set the column count); lines that
+    hold no row are left out (``_parse_cells``)."""
     try:
         data = np.loadtxt(io.StringIO("\n".join(line for _, line in body)), delimiter=delimiter, ndmin=2)
         if data.shape[1] != len(names):
             raise ValueError("column count")
+        lines, unreadable = np.array([line_no for line_no, _ in body]), ()
     except ValueError:
-        data = _parse_cells(path, body, names, delimiter, first)
-    return {name: np.ascontiguousarray(data[:, k]) for k, name in enumerate(names)}
+        data, lines, unreadable = _parse_cells(path, body, names, delimiter, first)
+    return Table(path, {name: np.ascontiguousarray(data[:, k]) for k, name in enumerate(names)}, lines=lines,
+                 unreadable=unreadable)
 
 
 def _parse_cells(path: Path, body: list[tuple[int, str]], names: list[str], delimiter: str | None,
-                 first: str) -> FloatArray:
-    """Cell by cell, for the rows the fast reader refused: an empty cell is NaN, anything else must be a number."""
+                 first: str) -> tuple[FloatArray, np.ndarray, tuple[Unreadable, ...]]:
+    """Cell by cell, for the rows the fast reader refused: an empty cell is NaN, anything else must be a number.
+    Returns the rows, their line numbers and the lines left out per reason; a decimal comma, or no readable line
+    at all, is a BagError."""
     data = np.empty((len(body), len(names)))
-    for row, (line_no, line) in enumerate(body):
+    kept: list[int] = []
+    bad: dict[str, tuple[list[int], str]] = {}
+    for line_no, line in body:
         cells = line.split(delimiter)
+        reason, detail = None, ""
         if len(cells) != len(names):
-            raise bag_error(path, f"line {line_no} has {len(cells)} fields, {first} has {len(names)}",
-                            f"fix the row or {first}")
-        for k, cell in enumerate(cells):
-            text = cell.strip()
-            try:
-                data[row, k] = float(text) if text else np.nan
-            except ValueError:
-                raise _not_a_number(path, line_no, names[k], text) from None
-    return data
+            count = "have" if first == "most lines" else "has"
+            reason, detail = WIDTH, f"line {line_no} has {len(cells)} fields, {first} {count} {len(names)}"
+        else:
+            for k, cell in enumerate(cells):
+                text = cell.strip()
+                try:
+                    data[len(kept), k] = float(text) if text else np.nan
+                except ValueError:
+                    _decimal_comma(path, line_no, names[k], text)
+                    reason = NOT_A_NUMBER
+                    detail = f"line {line_no}, column {shorten(names[k])!r}: {shorten(text)!r} is not a number"
+                    break
+        if reason is None:
+            kept.append(line_no)
+            continue
+        if line_no == body[-1][0] and len(cells) < len(names):
+            reason = TRUNCATED_END          # a logger stopped mid-line
+        bad.setdefault(reason, ([], detail))[0].append(line_no)
+    if not kept:
+        lines, detail = next(iter(bad.values()))
+        fix = "fix the cells or drop the rows" if NOT_A_NUMBER in bad else f"fix the rows or {first}"
+        raise bag_error(path, f"no line holds a row of numbers ({detail})", fix)
+    unreadable = tuple(Unreadable(reason, lines, detail) for reason, (lines, detail) in bad.items())
+    return data[:len(kept)], np.array(kept), unreadable
 
 
-def _not_a_number(path: Path, line_no: int, name: str, text: str) -> BagError:
-    """The error of a cell that is not a number; a decimal comma (``1,5``) names the fix for the whole file."""
-    where = f"line {line_no}, column {shorten(name)!r}: {shorten(text)!r}"
+def _decimal_comma(path: Path, line_no: int, name: str, text: str) -> None:
+    """The error of a cell written with a decimal comma (``1,5``): an export setting, so the fix is the whole
+    file's."""
     try:
         float(text.replace(",", ".", 1))
     except ValueError:
-        return bag_error(path, f"{where} is not a number", "fix the cell or drop the row")
-    return bag_error(path, f"{where} has a decimal comma", "export the log with '.' as the decimal separator, or "
-                     f"replace the commas: sed -i 's/,/./g' {path}")
+        return
+    raise bag_error(path, f"line {line_no}, column {shorten(name)!r}: {shorten(text)!r} has a decimal comma",
+                    "export the log with '.' as the decimal separator, or "
+                    f"replace the commas: sed -i 's/,/./g' {path}")
 
 
 def _load_npz(path: Path) -> dict[str, object]:
-    try:
-        with np.load(path, allow_pickle=False) as archive:
+    try:     # our own file object: numpy leaves its own open when the archive is not a zip
+        with open(path, "rb") as stream, np.load(stream, allow_pickle=False) as archive:
             arrays: dict[str, object] = {}
             for name in archive.files:
                 try:
@@ -221,4 +284,3 @@ def _from_arrays(path: Path, arrays: dict[str, object]) -> Table:
     if not columns:
         raise bag_error(path, "holds no numeric vectors or matrices", "save the signals as numeric arrays")
     return Table(path, columns, skipped)
-

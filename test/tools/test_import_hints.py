@@ -44,4 +44,4 @@ def test_a_bad_cell_is_shown_cut_not_the_whole_row(tmp_path, capsys):
     assert main(["import", str(log), *ARGS, "--out", str(tmp_path / "bag")]) == 1
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and len(err.replace(str(log), "FILE")) < 200, err
-    assert "is not a number; fix the cell or drop the row" in err and "…" in err
+    assert "is not a number); fix the cells or drop the rows" in err and "…" in err

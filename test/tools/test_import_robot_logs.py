@@ -96,8 +96,9 @@ def test_ur_rtde_csv_round_trip(tmp_path, capsys):
     bag = tmp_path / "bag"
     assert _import(log, "--mapping", mapping, "--joints", ",".join(UR_JOINTS), "--out", bag) == 0
     out = capsys.readouterr().out
-    assert "196 of 200 kept" in out
-    assert "3 non-finite time, position, velocity or effort, 1 repeated stamp" in out
+    assert "196 of 200 kept; dropped: 4" in out
+    assert "NaN or Inf in q, q̇ or τ: 3 rows (line 39 to line 122; first: elbow_joint q = nan)" in out
+    assert "repeated stamp: 1 row (line 103; " in out
     assert "100.0 Hz median" in out and "/joint_states (196), /effort_commands (196)" in out
     run = read_run(bag, UR_JOINTS)
     kept = truth["kept"]
@@ -138,7 +139,7 @@ def test_npz_with_wrench_and_external_torque_from_flags(tmp_path, capsys):
                    ",".join(f"ft:{k}" for k in range(6)), "--wrench-frame", "tool0", "--scale", "command=2",
                    "--out", bag) == 0
     out = capsys.readouterr().out
-    assert "/ground_truth/external_joint_torque: 1 of 50 rows left out (non-finite values)" in out
+    assert "/ground_truth/external_joint_torque: 1 of 50 rows left out (not finite or beyond the bounds)" in out
     assert "effort: not mapped, written as NaN" in out
     run = read_run(bag)
     np.testing.assert_array_equal(run.commands.effort, 2 * tau)
@@ -180,13 +181,21 @@ def test_mat_in_matlab_orientation_with_differentiated_velocity_in_degrees(tmp_p
 
 
 def test_out_of_order_rows_are_dropped_and_counted(tmp_path, capsys):
-    log = _write(tmp_path, "log.csv", "t,q0,v0,e0\n0.0,1,0,0\n0.1,2,0,0\n0.05,3,0,0\n0.1,4,0,0\n0.2,5,0,0\n")
+    """A stamp that goes back, one that repeats and one that spikes forward each cost their own row (the fewest rows
+    whose removal leaves time strictly increasing; the spike, a step of 10^4 median steps, is far from the rest)."""
+    stamps = ["0.0", "0.1", "0.2", "0.15", "0.3", "0.3", "1000", "0.4"]
+    rows = "".join(f"{t},{k + 1},0,0\n" for k, t in enumerate(stamps))
+    log = _write(tmp_path, "log.csv", "t,q0,v0,e0\n" + rows)
     bag = tmp_path / "bag"
     assert _import(log, "--time", "t", "--joints", "j", "--position", "q{i}", "--velocity", "v{i}", "--effort",
                    "e{i}", "--out", bag) == 0
-    assert "1 repeated stamp, 1 stamp before an earlier row's" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "5 of 8 kept; dropped: 3" in out
+    assert "repeated stamp: 1 row (line 7; first: stamp 0.3 s" in out
+    assert "stamp out of order: 1 row (line 5; first: stamp 0.15 s)" in out
+    assert "stamp far from its neighbours (a step over 100 median steps): 1 row (line 8; first: stamp 1000 s" in out
     run = read_run(bag)
-    np.testing.assert_array_equal(run.joint_states.position[:, 0], [1, 2, 5])
+    np.testing.assert_array_equal(run.joint_states.position[:, 0], [1, 2, 3, 5, 8])
 
 
 BASE = ("--time", "t", "--joints", "j", "--position", "q{i}", "--velocity", "v{i}", "--effort", "e{i}")
@@ -194,11 +203,13 @@ BASE = ("--time", "t", "--joints", "j", "--position", "q{i}", "--velocity", "v{i
 
 @pytest.mark.parametrize("content, args, message", [
     ("t,q0,v0\n0,1,2\n", BASE, "has no column 'e0'; its columns are t, q0, v0"),
-    ("t,q0,v0,e0\n0,1,2,3\n0.1,1,abc,3\n", BASE, "line 3, column 'v0': 'abc' is not a number"),
+    ("t,q0,v0,e0\n0,1,2,3\n0.1,1,abc,3\n", BASE, "too little left: 1 of 2 rows usable (a cell that is not a "
+     "number: 1 line (line 3; first: line 3, column 'v0': 'abc' is not a number))"),
     ("t,q0,v0,e0\n0,1,2\n", BASE, "line 2 has 3 fields, the header has 4"),
     ("", BASE, "is empty (no header row)"),
     ("t,q0,v0,e0\n", BASE, "has a header but no data rows"),
-    ("t,q0,v0,e0\nnan,1,2,3\n0,nan,2,3\n", BASE, "no usable rows among 2 (2 non-finite"),
+    ("t,q0,v0,e0\nnan,1,2,3\n0,nan,2,3\n", BASE, "too little left: 0 of 2 rows usable (stamp not finite or out of "
+     "range: 1 row (line 2; first: stamp nan s); NaN or Inf in q, q̇ or τ: 1 row (line 3; first: j q = nan))"),
     ("t,q0,v0,e0\n-1.5,1,2,3\n", BASE, "pass --time-offset 2"),
     ("t,q0,e0\n0,1,3\n", BASE[:6] + ("--effort", "e{i}"), "no velocity columns"),
     ("t,q0,v0\n0,1,2\n", BASE[:8], "no joint torque"),

@@ -372,7 +372,10 @@ def _indexed(reader: Reader, conns: list[Any]) -> tuple[RawMessages, dict[int, A
                 by_id[channel.id] = same[0]
     if not mcap.chunks:
         return None
-    raw = indexed_messages(Path(mcap.path), mcap.chunks, by_id)
+    try:
+        raw = indexed_messages(Path(mcap.path), mcap.chunks, by_id)
+    except (IndexError, ValueError, OverflowError, MemoryError):   # a corrupt index or chunk: rosbags reads it
+        return None                                                  # record by record, and names what is wrong
     return None if raw is None else (raw, by_id)
 
 

@@ -82,6 +82,7 @@ from kvark_ros.gap.plausibility import (
     raw_gap,
 )
 from kvark_ros.io.alignment import add_sample_options, load_recordings
+from kvark_ros.io.runs import numerical_failures
 
 if TYPE_CHECKING:
     from kvark_ros.cli import SubParsers
@@ -587,9 +588,10 @@ def run(args: argparse.Namespace) -> int:
     priors = Priors(max_gain_error=args.max_gain_error, max_joint_offset=float(np.radians(args.max_joint_offset)),
                     payload_com=args.payload_com, torque_measurement=config.torque_measurement,
                     scale=tuple(dict(args.prior).items()))
-    diag = diagnose(robot, segments, args.holdout, effects=args.effects, log=log, priors=priors)
     out = Path(args.out)
-    with staged_directory(out, args.force) as staging:
+    with numerical_failures(args.bags, "the diagnosis", "check the bags' skipped-sample lines above, --trim what is "
+                            "not motion, or try one bag at a time"), staged_directory(out, args.force) as staging:
+        diag = diagnose(robot, segments, args.holdout, effects=args.effects, log=log, priors=priors)
         written = write_outputs(diag, robot, staging, config.robot, plots=not args.no_plots)
     for path in written:
         log(f"[diagnose] wrote {out / path.relative_to(staging)}")

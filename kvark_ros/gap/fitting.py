@@ -102,9 +102,15 @@ class Fitter:
             pos += term.size
         scale = np.sqrt(np.diag(gram) / rows) + 1e-12                # column scaling for conditioning
         gram_scaled = gram / np.outer(scale, scale)
-        r_mat = np.linalg.cholesky(gram_scaled + 1e-12 * np.trace(gram_scaled) / len(scale) * np.eye(len(scale))).T
-        target = np.linalg.solve(r_mat.T, moment / scale)
-        sol = lsq_linear(r_mat, target, bounds=(lo * scale, hi * scale), method="bvls")
+        try:
+            r_mat = np.linalg.cholesky(gram_scaled + 1e-12 * np.trace(gram_scaled) / len(scale)
+                                       * np.eye(len(scale))).T
+            target = np.linalg.solve(r_mat.T, moment / scale)
+            sol = lsq_linear(r_mat, target, bounds=(lo * scale, hi * scale), method="bvls")
+        except (np.linalg.LinAlgError, ValueError) as exc:      # which effects failed, for the one-line error
+            effects = ", ".join(f"{term.name} on joint(s) {', '.join(str(j + 1) for j in term.joints)}"
+                                for term in terms)
+            raise np.linalg.LinAlgError(f"the least-squares fit of {effects}: {exc}") from exc
         theta = sol.x / scale
         a_tr, a_he = (np.concatenate([self.design(term)[i] for term in terms], axis=2) for i in (0, 1))
         r_tr = self.train.gap - a_tr @ theta

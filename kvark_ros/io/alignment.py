@@ -12,24 +12,40 @@ rejected (out of order), a state's own command is the first one at or after its 
 next state's, and a state without one takes the last command before its stamp. Feeding the pairer
 message by message cost more than the rest of a replay; test/io/test_bulk_pairing.py checks the two
 agree. Stamps that are not finite (which bags cannot hold) still go through the pairer.
+
+What the commands read from a bag (``read_checked``) is then checked against the physics of the config's URDF
+as ``kvark import`` checks a log's rows (``core.estimation.sample_limits``: finite, within the limits and their
+margins, no isolated stamp, no position jump): a sample beyond them is skipped and counted, with one line per
+reason naming the bag, the topic, the time and the joint; a bag where most samples fail is refused with one
+line (its joints, units or torque source do not match the config).
 """
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from kvark_ros.core.config import EstimatorConfig
 from kvark_ros.core.estimation.inputs import EstimatorInputs, select_samples
 from kvark_ros.core.estimation.pairing import RESET, Sample, StreamPairer
+from kvark_ros.core.estimation.robot_model import RobotModel
+from kvark_ros.core.estimation.sample_limits import Drop, RowCheck, SampleLimits, check_rows, counted
 from kvark_ros.io import BagError, RecordedRun, TopicNames, read_run
 from kvark_ros.io.common import FLOAT64_ARRAY, JOINT_STATE
 from kvark_ros.io.info import topic_types
 from kvark_ros.io.topic_hints import missing_topic
 
 CONTACT_TORQUE = 1.0     # N·m: a true |τ_ext| above this on a joint is contact (about a joint's static friction)
+MIN_KEPT_SHARE = 0.5     # a bag with fewer samples within the physics is refused (kvark import's rule)
+# What to check when a reason skips most of a bag's samples.
+FIXES = {"position": "check that the config's robot_model (URDF, joint_names) is this robot's and q is in rad",
+         "velocity": "check that the config's joint_names are this robot's and q̇ is in rad/s",
+         "torque": "check input.torque_source and that the torque is in N·m (a motor current needs its torque "
+                   "constant: kvark import --scale)",
+         "jump": "check that the config's joint_names are this robot's, in the bag's order",
+         "far": "check the bag's header stamps", "non-finite": "re-record or re-import the bag"}
 
 
 def _paired(run: RecordedRun, max_command_age: float) -> list[Sample]:
@@ -118,12 +134,60 @@ def estimator_inputs(run: RecordedRun, max_command_age: float = 0.01, path: str 
                            states.effort[fresh], label, int((~fresh).sum()), run.simulated)
 
 
-def read_inputs(bag: str | Path, config: EstimatorConfig) -> tuple[RecordedRun, EstimatorInputs]:
-    """The run of ``bag`` read with the config's topics and joints, and its estimator inputs from the config's
-    ``input.torque_source`` (what ``kvark train``, ``replay``, ``diagnose`` and ``benchmark`` read)."""
+def _topic(reason: str, detail: str, topics: TopicNames, torque_source: str) -> str:
+    """The topic a skipped sample's reason points to: the torque's for τ, else the joint states'."""
+    torque = reason == "torque" or (reason == "non-finite" and " τ = " in detail)
+    return topics.effort_commands if torque and torque_source == "effort_commands" else topics.joint_states
+
+
+def _skipped(drop: Drop, stamp: np.ndarray, topics: TopicNames, torque_source: str) -> str:
+    """What ``drop`` skipped: count, topic, times (s from the first of ``stamp``) and what the first one shows."""
+    first, last = stamp[drop.rows[0]] - stamp[0], stamp[drop.rows[-1]] - stamp[0]
+    topic = _topic(drop.reason, drop.detail, topics, torque_source)
+    return (f"skipped {counted(len(drop.rows), 'sample')} of {topic}, "
+            f"{drop.text}, at {first:.3f}{'' if len(drop.rows) == 1 else f'-{last:.3f}'} s (first: {drop.detail})")
+
+
+def skipped_lines(bag: str | Path, check: RowCheck, stamp: np.ndarray, topics: TopicNames,
+                  torque_source: str) -> list[str]:
+    """One line per reason samples of ``bag`` were skipped (``_skipped``; ``stamp``: the samples checked)."""
+    return [f"{bag}: {_skipped(drop, stamp, topics, torque_source)}" for drop in check.drops]
+
+
+def read_checked(bag: str | Path, config: EstimatorConfig, limits: SampleLimits | None = None
+                 ) -> tuple[RecordedRun, EstimatorInputs, RowCheck, list[str]]:
+    """``read_inputs``' run and inputs, the inputs within ``limits`` (default: the config's URDF, module
+    docstring), the check and its ``skipped_lines``; a BagError if fewer than two samples or under
+    ``MIN_KEPT_SHARE`` of them are within."""
     topics = TopicNames.from_config(config.input)
     run = read_run(bag, config.joint_names, topics)
-    return run, estimator_inputs(run, config.input.command_max_age, str(bag), config.input.torque_source, topics)
+    inputs = estimator_inputs(run, config.input.command_max_age, str(bag), config.input.torque_source, topics)
+    if limits is None:
+        limits = SampleLimits.from_robot(RobotModel(config.urdf, config.joint_names, config.ee_frame))
+    check = check_rows(inputs.stamp, inputs.q, inputs.qd, inputs.tau_m, limits)
+    source = "effort_commands" if inputs.torque_source == "effort_commands" else "joint_states"
+    lines = skipped_lines(bag, check, inputs.stamp, topics, source)
+    kept = int(check.kept.sum())
+    if not check.drops and kept < 2:
+        raise BagError(f"{bag}: {kept} usable samples of {len(run.joint_states.stamp)} joint states; check that "
+                       f"{topics.joint_states} and {topics.effort_commands} overlap (input.command_max_age) and that "
+                       "their stamps increase")
+    if check.drops and (kept < 2 or kept < MIN_KEPT_SHARE * len(inputs)):
+        main = max(check.drops, key=lambda drop: len(drop.rows))
+        raise BagError(f"{bag}: {kept} of {len(inputs)} samples within the physics of {limits.source}, "
+                       f"{_skipped(main, inputs.stamp, topics, source)}; {FIXES.get(main.reason, 're-record it')}")
+    return run, inputs.take(check.kept) if check.drops else inputs, check, lines
+
+
+def read_inputs(bag: str | Path, config: EstimatorConfig,
+                log: Callable[[str], None] | None = print) -> tuple[RecordedRun, EstimatorInputs]:
+    """The run of ``bag`` read with the config's topics and joints, and its estimator inputs from the config's
+    ``input.torque_source`` within the physics of its URDF (``read_checked``; what ``kvark train``, ``replay``,
+    ``diagnose`` and ``benchmark`` read); ``log`` gets the lines of skipped samples (None: not shown)."""
+    run, inputs, _, lines = read_checked(bag, config)
+    for line in lines if log is not None else ():
+        log(f"warning: {line}")
+    return run, inputs
 
 
 def add_trim_option(parser: argparse.ArgumentParser) -> None:
@@ -171,16 +235,19 @@ def contact_warning(bag: str, run: RecordedRun, kept: EstimatorInputs, start: fl
 
 def load_recordings(bags: Sequence[str], config: EstimatorConfig, tag: str, trim: tuple[float, float] = (0.0, 0.0),
                     rate: float = 0.0) -> list[EstimatorInputs]:
-    """Estimator inputs of every bag, trimmed and decimated (``select_samples``), with one status line each and a
-    warning line for a bag whose ground truth shows contact (``contact_warning``); train and diagnose read bags
-    this way."""
+    """Estimator inputs of every bag within the physics of the config's URDF (``read_checked``), trimmed and
+    decimated (``select_samples``), with one status line each, a warning line per reason samples were skipped for
+    and one for a bag whose ground truth shows contact (``contact_warning``); train and diagnose read bags this
+    way."""
     segments = []
     for bag in bags:
-        run, inputs = read_inputs(bag, config)
+        run, inputs, _, skipped = read_checked(bag, config)
         kept = select_samples(inputs, trim, rate) if len(inputs) > 1 else inputs
         count = f"{len(kept)}" if len(kept) == len(inputs) else f"{len(kept)} of {len(inputs)}"
         print(f"[{tag}] {bag}: {count} samples (τ_m from {kept.torque_source}, "
               f"{kept.dropped} dropped{', simulated' if kept.simulated else ''})", flush=True)
+        for line in skipped:
+            print(f"[{tag}] warning: {line}", flush=True)
         warning = contact_warning(bag, run, kept, float(inputs.stamp[0])) if len(inputs) else None
         if warning is not None:
             print(f"[{tag}] warning: {warning}", flush=True)

@@ -7,12 +7,16 @@ position in a message (docs/method.md §1.3); units are SI; stamps are seconds.
 
 Every failure a user can cause (bad path, not a bag, corrupt file, missing
 topic or joint, wrong message type, existing output) raises :class:`BagError`
-with a one-line message naming the file, the problem and the fix.
+with a one-line message naming the file, the problem and the fix; a fit that
+fails numerically on the data of bags (:func:`numerical_failures`) raises its
+subclass :class:`FitError`, one line naming the bags, the step and what to check.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -23,12 +27,14 @@ from kvark_ros.io.common import FloatArray, PathLike
 __all__ = [
     "BagError",
     "CommandSeries",
+    "FitError",
     "JointStateSeries",
     "RecordedRun",
     "SIMULATOR_SOURCE",
     "SOURCE_KEY",
     "TopicNames",
     "WrenchSeries",
+    "numerical_failures",
 ]
 
 
@@ -40,6 +46,29 @@ def bag_error(path: PathLike, problem: str, fix: str) -> BagError:
     """Build a one-line BagError: '<path>: <problem>; <fix>'."""
     text = f"{os.fspath(path)}: {problem}; {fix}"
     return BagError(" ".join(text.split()))
+
+
+class FitError(BagError):
+    """A fit on the data of bags failed numerically; the message names the bags, the step and what to check."""
+
+
+# What numpy, scipy and scikit-learn raise when data defeat a computation: an SVD or a Cholesky factor that does
+# not exist or converge, an overflow, a division by zero, NaN or too few samples in a fit.
+NUMERICAL_ERRORS = (np.linalg.LinAlgError, FloatingPointError, OverflowError, ZeroDivisionError, ValueError)
+
+
+@contextmanager
+def numerical_failures(bags: Sequence[PathLike], step: str, check: str) -> Iterator[None]:
+    """Turn a numerical failure inside the block into one line, a :class:`FitError`: ``<bags>: <step> failed
+    (<what failed>); <check>``. kvark_ros's own errors (a user error, with its own line) pass through."""
+    try:
+        yield
+    except NUMERICAL_ERRORS as exc:
+        if type(exc).__module__.startswith("kvark_ros"):
+            raise
+        what = " ".join(str(exc).split()) or "no message"
+        names = ", ".join(os.fspath(bag) for bag in bags)
+        raise FitError(f"{names}: {step} failed ({type(exc).__name__}: {what}); {check}") from exc
 
 
 SOURCE_KEY = "kvark_ros.source"       # bag metadata custom_data key naming what wrote the bag

@@ -35,6 +35,7 @@ from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.learning.training import train_model
 from kvark_ros.io import BagError
 from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.runs import numerical_failures
 from kvark_ros.tools.metrics import CONTACT_TORQUE, observer_metrics, static_band
 from kvark_ros.tools.real_pushes import HOLD, RAMP, SETTLE, Pushes, phase_rmse, pushed
 from kvark_ros.tools.replay import run_observer, zero_truth
@@ -148,7 +149,8 @@ def per_joint_coverage(nominal: dict[str, Any], augmented: dict[str, Any], joint
 
 def run_real(args: argparse.Namespace) -> int:
     """The ``--real`` job (module docstring), built beside ``--out`` and swapped in whole (``staged_directory``)."""
-    with staged_directory(args.out, args.force) as out:
+    with numerical_failures([args.real], "the benchmark", "check the bag's skipped-sample lines above, and --trim "
+                            "what is not free motion"), staged_directory(args.out, args.force) as out:
         return _run_real(args, out)
 
 

@@ -34,7 +34,8 @@ from kvark_ros.core.estimation.observers import ResidualPredictor
 from kvark_ros.core.estimation.robot_model import RobotModel, condition_numbers, urdf_sha256
 from kvark_ros.io import (BagError, BagWriter, RecordedRun, bool_messages, float64_array_messages,
                           joint_state_messages, load_message_types, wrench_messages, write_run_messages)
-from kvark_ros.io.alignment import add_trim_option, read_inputs
+from kvark_ros.io.alignment import add_trim_option, read_checked, read_inputs
+from kvark_ros.io.runs import numerical_failures
 from kvark_ros.tools.reference import align_reference, interpolate
 from kvark_ros.tools.truth_topics import missing_truth
 from kvark_ros.tools.metrics import in_motion, mahalanobis_rows, observer_metrics, static_band
@@ -254,11 +255,14 @@ def write_estimates(path: Path, run: RecordedRun, inputs: EstimatorInputs, resul
 
 
 def bag_fields(inputs: EstimatorInputs, truth: GroundTruth | None, trained: TrainedModel, warnings: list[str],
-               decode_seconds: float, trim: tuple[float, float] = (0.0, 0.0)) -> dict:
-    """metrics.json's fields of the bag itself (``kvark evaluate`` writes the same per bag)."""
+               decode_seconds: float, trim: tuple[float, float] = (0.0, 0.0),
+               skipped: dict[str, int] | None = None) -> dict:
+    """metrics.json's fields of the bag itself (``kvark evaluate`` writes the same per bag); ``skipped``: samples
+    skipped beyond the physics of the URDF per reason (``io.alignment.read_checked``)."""
     return {"ground_truth": truth.kind if truth is not None else "none", "trim_s": [float(v) for v in trim],
             "samples": len(inputs), "duration_s": round(float(inputs.stamp[-1] - inputs.stamp[0]), 3),
             "torque_source": inputs.torque_source, "dropped_samples": inputs.dropped,
+            "skipped_samples": dict(skipped or {}),
             "decode_seconds": round(decode_seconds, 3), "sample_rate_hz": round(measured_rate(inputs.stamp), 3),
             "model_sample_rate_hz": round(trained.sample_rate, 3), "warnings": warnings}
 
@@ -283,9 +287,9 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
     load_message_types()
     start_up = time.perf_counter() - started
     started = time.perf_counter()
-    run, inputs = read_inputs(bag, config)
-    if len(inputs) < 2:
-        raise BagError(f"{bag}: fewer than two usable samples; check that joint_states and effort_commands overlap")
+    run, inputs, check, skipped = read_checked(bag, config)
+    for line in skipped:
+        log(f"[replay] warning: {line}")
     log(f"[replay] {bag}: {len(inputs)} samples at {measured_rate(inputs.stamp):.0f} Hz, τ_m from "
         f"{inputs.torque_source}{' (simulated)' if inputs.simulated else ''}")
     warnings = model_warnings(trained, config.robot, measured_rate(inputs.stamp), inputs.simulated)
@@ -293,7 +297,7 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
         log(f"[replay] {line}")
     reference = None
     if reference_bag is not None:
-        reference = read_inputs(reference_bag, config)[1]
+        reference = read_inputs(reference_bag, config, lambda line: log(f"[replay] {line}"))[1]
     robot = RobotModel.from_config(config, trained.augmentation)
     truth = ground_truth(robot, config, run, inputs, reference, truth_kind, bag)
     if trim != (0.0, 0.0):     # after the ground truth: a reference run is aligned from the recordings' starts
@@ -308,7 +312,8 @@ def replay(config: EstimatorConfig, trained: TrainedModel, bag: Path, out: Path,
             f"{result.valid.sum()} estimates")
     duration = float(inputs.stamp[-1] - inputs.stamp[0])
     moving = in_motion(inputs.qd, config.filter.stiction_velocity)
-    metrics = {"bag": str(bag), **bag_fields(inputs, truth, trained, warnings, decode_seconds, trim),
+    metrics = {"bag": str(bag), **bag_fields(inputs, truth, trained, warnings, decode_seconds, trim,
+                                             {drop.reason: len(drop.rows) for drop in check.drops}),
                "start_up_seconds": round(start_up, 3),
                "observers": {r.name: observer_metrics(r, truth, inputs.stamp, static_band(trained), moving)
                              for r in results}}
@@ -378,9 +383,11 @@ def run(args: argparse.Namespace) -> int:
     if oracle is not None and trained.augmentation is not None and args.observers == "all":
         print("[replay] oracle skipped: it runs on the plant's own rigid body and friction, and this "
               "model is augmented", flush=True)
-    replay(config, trained, Path(args.bag), Path(args.out), observers,
-           Path(args.reference_bag) if args.reference_bag else None, oracle, write_bag=args.estimates_bag,
-           log=lambda line: print(line, flush=True), truth_kind=args.ground_truth, trim=tuple(args.trim),
-           tare_at=args.tare_at, plots=not args.no_plots, force=args.force)
+    with numerical_failures([args.bag], "the replay", "check the bag's skipped-sample lines above, and --trim what "
+                            "the model was not trained for"):
+        replay(config, trained, Path(args.bag), Path(args.out), observers,
+               Path(args.reference_bag) if args.reference_bag else None, oracle, write_bag=args.estimates_bag,
+               log=lambda line: print(line, flush=True), truth_kind=args.ground_truth, trim=tuple(args.trim),
+               tare_at=args.tare_at, plots=not args.no_plots, force=args.force)
     print(f"[replay] wrote {args.out}/metrics.json{'' if args.no_plots else ' and report.md'}", flush=True)
     return 0

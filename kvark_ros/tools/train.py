@@ -6,7 +6,9 @@ covariance matching, the baselines' residual models; with a model augmentation f
 stored with the model), records where the model came from (bag and URDF hashes) and writes the
 model directory with its plots beside it and swaps it in whole: a failed run leaves the previous model untouched, and
 an existing non-empty ``--out`` is replaced only with ``--force``. ``--trim`` and ``--rate`` select the samples of
-every bag (``select_samples``), ``--holdout`` is the share training holds out for its own checks.
+every bag (``select_samples``), ``--holdout`` is the share training holds out for its own checks. A fit the data
+defeat is one error line naming the bags and what to check (``kvark_ros.io.runs.numerical_failures``), never a
+traceback.
 """
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ from kvark_ros.core.estimation.residual.common import available_cores
 from kvark_ros.core.estimation.robot_model import RobotModel, urdf_sha256
 from kvark_ros.core.learning.training import HOLDOUT, INPUT_MODES, train_model
 from kvark_ros.io.alignment import add_sample_options, load_recordings
+from kvark_ros.io.runs import numerical_failures
 
 if TYPE_CHECKING:
     from kvark_ros.cli import SubParsers
@@ -105,15 +108,19 @@ def run(args: argparse.Namespace) -> int:
             "bags": [{"name": Path(bag).name, "sha256": bag_hash(Path(bag))} for bag in args.bags],
             "samples_selected": {"trim_s": [float(v) for v in args.trim], "rate_hz": args.rate,
                                  "holdout": args.holdout}}
-    trained = train_model(robot, config.robot, segments, baselines=not args.no_baselines, seed=args.seed,
-                          info=info, residual_inputs=args.residual_inputs, log=lambda line: print(line, flush=True),
-                          jobs=args.jobs, settings=config.filter, holdout=args.holdout)
     out, plots = Path(args.out), []
-    with staged_directory(out, args.force) as staging:
-        write_model_files(staging, trained)
-        if not args.no_plots:
-            from kvark_ros.tools.plots import plot_training
-            plots = [out / path.relative_to(staging) for path in plot_training(robot, trained, segments, staging)]
+    with numerical_failures(args.bags, "training", "check the bags' skipped-sample lines above, --trim what is not "
+                            "free motion, or train on more motion (a few seconds per bag at least)"):
+        trained = train_model(robot, config.robot, segments, baselines=not args.no_baselines, seed=args.seed,
+                              info=info, residual_inputs=args.residual_inputs,
+                              log=lambda line: print(line, flush=True), jobs=args.jobs, settings=config.filter,
+                              holdout=args.holdout)
+        with staged_directory(out, args.force) as staging:
+            write_model_files(staging, trained)
+            if not args.no_plots:
+                from kvark_ros.tools.plots import plot_training
+                plots = [out / path.relative_to(staging) for path in plot_training(robot, trained, segments,
+                                                                                   staging)]
     print(f"[train] model written to {out}", flush=True)
     for path in plots:
         print(f"[train] plot {path}", flush=True)

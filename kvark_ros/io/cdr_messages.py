@@ -61,11 +61,13 @@ class Template:
                 return False
         return True
 
-    def numbers(self, raw: bytes) -> Numbers:
+    def numbers(self, raw: bytes, names: Sequence[str] | None = None) -> Numbers:
         """The numbers of ``raw`` (a message this template ``matches``): name → (count,) in native byte order
-        (views of ``raw`` where that is its order)."""
+        (views of ``raw`` where that is its order); those of the fields ``names`` only, if given."""
+        fields = self.fields
         out = {}
-        for name, (offset, dtype, native, count) in self.fields.items():
+        for name in fields if names is None else names:
+            offset, dtype, native, count = fields[name]
             values = np.frombuffer(raw, dtype, count, offset)
             out[name] = values if dtype is native else values.astype(native)
         return out
@@ -92,27 +94,33 @@ class Decoder:
         self.msgtype = msgtype
         self._templates: dict[int, list[Template]] = {}      # message size -> templates of that size
         self._count = 0
+        # rosbags builds the typestore and a type's deserialiser when first asked (0.1 s in a fresh process): here,
+        # not at a live topic's first message.
+        empty = _EMPTY.get(msgtype)
+        if empty is not None:
+            typestore().deserialize_cdr(empty(), msgtype)
 
-    def decode(self, raw: bytes) -> tuple[Any, Numbers]:
+    def decode(self, raw: bytes, names: Sequence[str] | None = None) -> tuple[Any, Numbers]:
         """(the first message of ``raw``'s layout as rosbags decoded it, for its names, labels and frame id; the
-        numbers of ``raw``: name → (count,) array, as ``cdr_arrays.message_fields`` names them). A ValueError
-        for bytes that are not a ``msgtype`` message."""
+        numbers of ``raw``: name → (count,) array, as ``cdr_arrays.message_fields`` names them, those of ``names``
+        only if given). A ValueError for bytes that are not a ``msgtype`` message."""
         for template in self._templates.get(len(raw), ()):
             if template.matches(raw):
-                return template.message, template.numbers(raw)
+                return template.message, template.numbers(raw, names)
         try:
             message = typestore().deserialize_cdr(raw, self.msgtype)
         except Exception as exc:  # rosbags raises SerdeError, struct.error, IndexError, UnicodeDecodeError, ...
             raise ValueError(f"not a {self.msgtype} message ({exc or type(exc).__name__})") from exc
         template = Template.read(raw, self.msgtype, message)
         if template is None:
-            return message, {name: value.reshape(-1) for name, value in message_fields(message, self.msgtype).items()}
+            fields = message_fields(message, self.msgtype)
+            return message, {name: fields[name].reshape(-1) for name in (fields if names is None else names)}
         if self._count >= self.CACHE_SIZE:
             self._templates.clear()
             self._count = 0
         self._templates.setdefault(len(raw), []).append(template)
         self._count += 1
-        return message, template.numbers(raw)
+        return message, template.numbers(raw, names)
 
 
 def _template(msgtype: str, message: Any) -> Template:
@@ -157,3 +165,7 @@ def float64_array_template(dims: Sequence[tuple[str, int, int]], length: int) ->
 def bool_message(value: bool) -> bytes:
     """A std_msgs/Bool, serialised."""
     return bytes(typestore().serialize_cdr(typestore().types[BOOL](data=bool(value)), BOOL))
+
+
+_EMPTY = {JOINT_STATE: lambda: joint_state_template([]).raw, WRENCH_STAMPED: lambda: wrench_template("").raw,
+          FLOAT64_ARRAY: lambda: float64_array_template([], 0).raw, BOOL: lambda: bool_message(False)}

@@ -124,12 +124,14 @@ class EstimatorNode(Node):
         self._statuses = StatusBuilder(self.get_fully_qualified_name(), config.robot)
 
         sensor_qos = qos_profile("sensor_data", config.input.queue_depth)
-        self._outputs = EstimatePublishers(self, config.joint_names,
+        self._outputs = EstimatePublishers(self, config.joint_names, config.ee_frame,
                                            qos_profile(config.output.qos, config.input.queue_depth))
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
         # The inputs arrive as CDR bytes (module docstring: Threads), with no QoS event handlers (input_loop).
         self.input_group = InputGroup()
         self._states = Decoder(JOINT_STATE)
+        self._state_fields = ("sec", "nanosec", "position", "velocity") + (
+            ("effort",) if self._torque_source == "joint_states_effort" else ())
         self._commands = Decoder(FLOAT64_ARRAY if self._torque_source == "effort_commands" else JOINT_STATE)
         inputs = [(JointState, config.input.joint_states_topic, self._joint_state)]
         if self._torque_source != "joint_states_effort":
@@ -138,7 +140,8 @@ class EstimatorNode(Node):
                           (JointState, config.input.effort_commands_topic, self._command_state))
         no_events = SubscriptionEventCallbacks(use_default_callbacks=False)
         self.inputs = [self.create_subscription(kind, topic, callback, sensor_qos, callback_group=self.input_group,
-                                                event_callbacks=no_events, raw=True) for kind, topic, callback in inputs]
+                                                event_callbacks=no_events, raw=True)
+                       for kind, topic, callback in inputs]
         # The model builds (coroutines awaiting a worker thread) in a group of their own: a callback group is busy
         # until its coroutine returns, so in the node's default group a build would hold up the services.
         builds = MutuallyExclusiveCallbackGroup()
@@ -220,16 +223,17 @@ class EstimatorNode(Node):
         published = publication_ns(info)
         return (self.get_clock().now().nanoseconds if published is None else published) / 1e9
 
-    def _decoded(self, decoder: Decoder, raw: bytes, reason: str) -> tuple[Any, dict] | None:
-        """(first message of its layout, numbers) of ``raw``; None for bytes that are no message (``reason``)."""
+    def _decoded(self, decoder: Decoder, raw: bytes, reason: str, names: tuple[str, ...]) -> tuple[Any, dict] | None:
+        """(first message of its layout, the numbers ``names``) of ``raw``; None for bytes that are no message
+        (``reason``)."""
         try:
-            return decoder.decode(raw)
+            return decoder.decode(raw, names)
         except ValueError:
             self._counts[reason] += 1
             return None
 
     def _joint_state(self, raw: bytes, info: dict) -> None:
-        if (decoded := self._decoded(self._states, raw, Drop.MALFORMED)) is None:
+        if (decoded := self._decoded(self._states, raw, Drop.MALFORMED, self._state_fields)) is None:
             return
         message, numbers = decoded
         index = self._columns.index(message.name)
@@ -265,7 +269,7 @@ class EstimatorNode(Node):
             self._estimate_all(self._pairer.state(key, Sample(stamp, q, qd, None, tag)))
 
     def _command_array(self, raw: bytes, info: dict) -> None:
-        if (decoded := self._decoded(self._commands, raw, Drop.BAD_COMMAND)) is None:
+        if (decoded := self._decoded(self._commands, raw, Drop.BAD_COMMAND, ("data",))) is None:
             return
         data, dims = decoded[1]["data"], decoded[0].layout.dim
         index = None
@@ -286,7 +290,7 @@ class EstimatorNode(Node):
         self._estimate_all(self._pairer.command(self._order_key(info, None), tau_m))
 
     def _command_state(self, raw: bytes, info: dict) -> None:
-        if (decoded := self._decoded(self._commands, raw, Drop.BAD_COMMAND)) is None:
+        if (decoded := self._decoded(self._commands, raw, Drop.BAD_COMMAND, ("sec", "nanosec", "effort"))) is None:
             return
         message, numbers = decoded
         index = self._columns.index(message.name)

@@ -87,6 +87,9 @@ class InputLoop:
                  lock: threading.Lock) -> None:
         self._node = node
         self._subscriptions = list(subscriptions)
+        # (take, message class, callback) per subscription, looked up once: the loop runs them at every wake
+        self._takers = [(subscription.handle.take_message, subscription.msg_type, subscription.callback)
+                        for subscription in self._subscriptions]
         self._lock = lock
         self._stopping = False
         self._wake = node.create_guard_condition(lambda: None, callback_group=group)
@@ -123,8 +126,7 @@ class InputLoop:
         own order; across topics the pairing needs it once more states wait than it holds); how many."""
         taken: list[tuple[bytes, dict, Callable]] = []
         topics = 0
-        for subscription in self._subscriptions:
-            take, kind, callback = subscription.handle.take_message, subscription.msg_type, subscription.callback
+        for take, kind, callback in self._takers:
             before = len(taken)
             while (message := take(kind, True)) is not None:
                 taken.append((message[0], message[1], callback))

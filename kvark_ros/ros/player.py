@@ -132,8 +132,8 @@ def add_parser(subparsers: SubParsers) -> None:
     parser.add_argument("--config", default=str(Path(__file__).resolve().parents[2] / "config" / "panda.yaml"),
                         help="estimator config whose input.joint_states_topic and input.effort_commands_topic are "
                              "played (default: config/panda.yaml)")
-    parser.add_argument("--rate", type=playback_rate, default=1.0, help="playback speed, 1 = real time (default), 2 = twice "
-                                                                "as fast")
+    parser.add_argument("--rate", type=playback_rate, default=1.0,
+                        help="playback speed, 1 = real time (default), 2 = twice as fast")
     parser.add_argument("--wait", type=float, default=10.0, metavar="SECONDS",
                         help="wait up to SECONDS for a subscriber on every topic before playing (default 10; "
                              "0: play at once)")

@@ -58,9 +58,9 @@ def qos_profile(kind: str, depth: int) -> QoSProfile:
 
 
 class EstimatePublishers:
-    """The publishers of the estimate topics (module docstring) on ``node``, for ``joint_names``."""
+    """The publishers of the estimate topics (module docstring) on ``node``, for ``joint_names`` and ``ee_frame``."""
 
-    def __init__(self, node: Node, joint_names: tuple[str, ...], qos: QoSProfile) -> None:
+    def __init__(self, node: Node, joint_names: tuple[str, ...], ee_frame: str, qos: QoSProfile) -> None:
         self.names = list(joint_names)
         n = len(self.names)
         self.uncertainty_wanted = self.base_wanted = self.ee_wanted = False
@@ -84,7 +84,8 @@ class EstimatePublishers:
         self._stddev = float64_array_template([(",".join(self.names), n, n)], n)
         self._covariance = float64_array_template([("row: " + ",".join(WRENCH_AXES), 6, 36),
                                                    ("column: " + ",".join(WRENCH_AXES), 6, 6)], 36)
-        self._wrenches: dict[str, Template] = {}     # frame id -> template
+        # frame id -> template: ee_frame's now, the root link's (known once a model is built) at its first use
+        self._wrenches: dict[str, Template] = {ee_frame: wrench_template(ee_frame)}
         self._flags = (bool_message(False), bool_message(True))
 
     def _wrench(self, stamp: Stamp, frame_id: str, values: np.ndarray) -> bytes:

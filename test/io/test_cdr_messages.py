@@ -99,6 +99,8 @@ def test_a_message_of_another_layout_is_never_taken_for_a_known_one():
                     first, numbers = decoder.decode(_padded(raw, padding))
                     assert first.name == names and first.header.frame_id == frame
                     assert _same_numbers(numbers, message, JOINT_STATE)
+                    velocity = decoder.decode(_padded(raw, padding), ("velocity",))[1]
+                    assert list(velocity) == ["velocity"] and np.array_equal(velocity["velocity"], message.velocity)
     assert decoder._count == len(variants) * 2, "one layout per names and frame, whatever the padding"
 
 
@@ -112,13 +114,16 @@ def test_big_endian_messages_give_native_numbers():
 
 
 def test_a_message_whose_layout_cannot_be_read_is_decoded_by_rosbags(monkeypatch):
-    """Where ``cdr_arrays`` cannot read a layout, every message goes to rosbags and nothing is cached."""
-    monkeypatch.setattr(cdr_messages.Template, "read", classmethod(lambda cls, raw, msgtype, message: None))
+    """Where ``cdr_arrays`` cannot read a layout, every message goes to rosbags and nothing is cached; a subset of
+    the fields is given as asked."""
     decoder = Decoder(JOINT_STATE)
+    monkeypatch.setattr(cdr_messages.Template, "read", classmethod(lambda cls, raw, msgtype, message: None))
     for k in range(3):
         message = joint_state(k, ARM, np.full(7, k), np.zeros(7), np.ones(7))
-        first, numbers = decoder.decode(bytes(STORE.serialize_cdr(message, JOINT_STATE)))
+        raw = bytes(STORE.serialize_cdr(message, JOINT_STATE))
+        first, numbers = decoder.decode(raw)
         assert _same_numbers(numbers, message, JOINT_STATE) and first.name == ARM
+        assert set(decoder.decode(raw, ("sec", "position"))[1]) == {"sec", "position"}
     assert decoder._count == 0
 
 

@@ -19,9 +19,8 @@ if not (sys.platform == "linux" and platform.machine() == "x86_64"):
 import rclpy  # noqa: E402
 from rclpy.qos import qos_profile_sensor_data  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
-from std_msgs.msg import Float64MultiArray  # noqa: E402
 
-from kvark_ros.ros import input_loop, node_check  # noqa: E402
+from kvark_ros.ros import input_loop, node_process  # noqa: E402
 from kvark_ros.ros.input_loop import InputGroup, InputLoop, ServiceThread  # noqa: E402
 
 DOMAINS = iter(range(150, 160))
@@ -65,7 +64,7 @@ def test_one_take_hands_on_every_ready_message_in_publication_order_under_the_lo
 
 @pytest.fixture
 def domain(tmp_path):
-    with node_check.joined(node_check.local_domain(next(DOMAINS), tmp_path / "log")):
+    with node_process.joined(node_process.local_domain(next(DOMAINS), tmp_path / "log")):
         yield
 
 

@@ -31,7 +31,7 @@ import inspect
 import time
 from collections import UserList
 from collections.abc import Sequence, Set
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import yaml

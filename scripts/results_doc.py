@@ -28,7 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from doc_blocks import ROOT, replace_section, scratch_copy, shell_blocks
+from doc_blocks import ROOT, generated_sections, replace_section, scratch_copy, shell_blocks
 
 DATA = ROOT / "docs" / "results.json"
 REAL_PANDA = "../shared/real/panda_gaz2019_trajectory1"
@@ -219,17 +219,57 @@ def render_population(data: dict) -> str:
     return "\n".join(lines)
 
 
+NODE_RUNS = ("", "--reload-at 2.5", "--rate 2", "--rate 2 --load-cores 1", "--rate 2 --load-cores 1 --reload-at 2.5")
+NODE_FIGURES = ("estimates_matched", "estimates_expected", "max_abs_difference", "node_reported_lost", "latency_ms_p50",
+                "latency_ms_p99", "latency_ms_max", "node_cpu_cores", "checker_cpu_cores", "machine_cpu_cores", "cores",
+                "input_rate_hz", "load_cores", "reload_at")
+
+
 def keep_node(out: Path, stdout: str) -> dict:
-    figures = read_json(out / "node.json")
-    return {key: figures[key] for key in ("estimates_matched", "estimates_expected", "max_abs_difference",
-                                          "latency_ms_p50", "latency_ms_p99", "node_cpu_cores", "reload_at")}
+    """Each run's figures, in the order of ``NODE_RUNS``."""
+    return {"runs": [{key: read_json(out / f"node{k}.json")[key] for key in NODE_FIGURES}
+                     for k in range(1, len(NODE_RUNS) + 1)]}
 
 
 def render_node(data: dict) -> str:
-    return ("| estimates equal to replay | max abs Δτ (N·m) | latency p50 / p99 (ms) | node CPU (core) |\n"
-            "|---|---|---|---|\n"
-            f"| {data['estimates_matched']} of {data['estimates_expected']} | {data['max_abs_difference']:.1e} | "
-            f"{data['latency_ms_p50']:.2f} / {data['latency_ms_p99']:.2f} | {data['node_cpu_cores']:.2f} |")
+    lines = ["| input | estimates equal to replay (max abs Δτ, N·m) | joint states lost "
+             "| latency p50 / p99 / max (ms) | node CPU (core) | node-check CPU (core) | machine CPU (cores) |",
+             "|---|---|---|---|---|---|---|"]
+    for run in data["runs"]:
+        label = f"{run['input_rate_hz']:.0f} Hz"
+        label += f", {run['load_cores']} core busy" if run["load_cores"] else ""
+        label += f", reload at {run['reload_at']:g} s" if run["reload_at"] is not None else ""
+        lines.append(f"| {label} | {run['estimates_matched']} of {run['estimates_expected']} "
+                     f"({run['max_abs_difference']:.1e}) | {run['node_reported_lost']} | {run['latency_ms_p50']:.2f} / "
+                     f"{run['latency_ms_p99']:.2f} / {run['latency_ms_max']:.1f} | {run['node_cpu_cores']:.3f} | "
+                     f"{run['checker_cpu_cores']:.3f} | {run['machine_cpu_cores']:.2f} of {run['cores']} |")
+    return "\n".join(lines)
+
+
+def node_costs(record: dict) -> str:
+    """README's lines on what the node costs per input rate, from the recorded node section."""
+    lines = ["| input | node CPU (core) | latency p99 (ms) | joint states lost |", "|---|---|---|---|"]
+    for run, options in zip(record["figures"]["runs"], NODE_RUNS):
+        if run["reload_at"] is None:
+            label = f"{run['input_rate_hz']:.0f} Hz" + (", the other core busy" if run["load_cores"] else "")
+            lines.append(f"| {label} (`{options or '--rate 1'}`) | {run['node_cpu_cores']:.2f} | "
+                         f"{run['latency_ms_p99']:.2f} | {run['node_reported_lost']} |")
+    return "\n".join(lines) + f"\n\n`kvark node-check --config config/panda.yaml --bag bags/panda_contact` with the " \
+        f"options in brackets, {record['date']} ({record['cores']} cores; docs/results.md has every figure)."
+
+
+def keep_node_instructions(out: Path, stdout: str) -> dict:
+    figures = read_json(out / "node.json")
+    return {key: figures[key] for key in ("instructions_per_estimate", "idle_instructions_per_s", "estimates_matched",
+                                          "estimates_expected", "max_abs_difference")}
+
+
+def render_node_instructions(data: dict) -> str:
+    idle = data["idle_instructions_per_s"] / 1e6
+    return (f"{data['instructions_per_estimate'] / 1e3:.0f} k instructions per estimate: the node process, every "
+            f"thread (inputs, estimation, publishing, Fast DDS), its idle work ({idle:.2f} M instructions/s) "
+            f"subtracted; {data['estimates_matched']} of {data['estimates_expected']} estimates equal to replay "
+            f"within {data['max_abs_difference']:.1e} N·m under valgrind.")
 
 
 def keep_bench(out: Path, stdout: str) -> dict:
@@ -284,8 +324,12 @@ SECTIONS = {
     "real-ur10e": Section(REAL_UR10E, "docs/results.md", keep_real, render_real),
     "population": Section("kvark benchmark --population 6 --seed 29 --out {out}/population", "docs/results.md",
                           keep_population, render_population),
-    "node": Section("kvark node-check --config config/panda.yaml --bag bags/panda_contact --reload-at 2.5 "
-                    "--json {out}/node.json", "docs/results.md", keep_node, render_node),
+    "node": Section("k=0; for run in " + " ".join(f'"{run}"' for run in NODE_RUNS) + "; do k=$((k+1)); "
+                    "kvark node-check --config config/panda.yaml --bag bags/panda_contact $run --json {out}/node$k.json"
+                    " || exit 1; done", "docs/results.md", keep_node, render_node),
+    "node-instructions": Section("kvark node-check --config config/panda.yaml --bag bags/panda_contact --rate 0.1 "
+                                 "--callgrind {out}/callgrind --json {out}/node.json", "docs/results.md",
+                                 keep_node_instructions, render_node_instructions),
     "latency": Section("kvark bench --robot panda --observer all", "docs/results.md", keep_bench, render_bench),
     "soak": Section("kvark soak --steps 1000000", "docs/results.md", keep_soak, render_soak),
     "walkthrough": Section("python scripts/results_doc.py --sections walkthrough", WALKTHROUGH,
@@ -376,7 +420,10 @@ def render(records: dict) -> None:
         text = documents.get(section.document) or (ROOT / section.document).read_text()
         documents[section.document] = replace_section(text, name, provenance(record) + "\n\n"
                                                       + section.render(record["figures"]))
-    documents["README.md"] = replace_section((ROOT / "README.md").read_text(), "glance", glance_table(records))
+    readme = replace_section((ROOT / "README.md").read_text(), "glance", glance_table(records))
+    if "node" in records and "node-costs" in generated_sections(readme):
+        readme = replace_section(readme, "node-costs", node_costs(records["node"]))
+    documents["README.md"] = readme
     for document, text in documents.items():
         (ROOT / document).write_text(text)
 

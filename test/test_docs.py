@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))
 
 from doc_blocks import DOCUMENTS, generated_sections, shell_blocks  # noqa: E402
-from results_doc import DATA, SECTIONS, glance_table, provenance  # noqa: E402
+from results_doc import DATA, SECTIONS, glance_table, node_costs, provenance  # noqa: E402
 
 README_MAX_LINES = 300      # the bound: what it is, quick start, ROS usage, results at a glance, links
 
@@ -40,8 +40,10 @@ def test_every_figure_section_is_rendered_from_its_recorded_command():
         expected = provenance(records[name]) + "\n\n" + section.render(records[name]["figures"])
         assert sections[name].strip() == expected.strip(), f"{section.document}: section {name} is stale or edited"
         assert records[name]["command"] in sections[name] and records[name]["date"] in sections[name]
-    glance = generated_sections((ROOT / "README.md").read_text())["glance"]
-    assert glance.strip() == glance_table(records).strip()
+    readme = generated_sections((ROOT / "README.md").read_text())
+    assert readme["glance"].strip() == glance_table(records).strip()
+    if "node-costs" in readme:                      # what the node costs per rate, where README shows it
+        assert readme["node-costs"].strip() == node_costs(records["node"]).strip()
 
 
 @pytest.mark.parametrize("document", DOCUMENTS)

@@ -21,7 +21,8 @@ import numpy as np
 from kvark_ros.core.config import EstimatorConfig
 from kvark_ros.core.estimation.augmentation import Augmentation, AugmentationError, load_augmentation
 from kvark_ros.core.estimation.calibration import CALIBRATED_OBSERVER
-from kvark_ros.core.estimation.compiled.inputs import ACCEPTED, NON_FINITE, NOT_INCREASING, check_sample
+from kvark_ros.core.estimation.compiled.inputs import (ACCEPTED, BEYOND_LIMITS, NON_FINITE, NOT_INCREASING, REPEATED,
+                                                       check_sample)
 from kvark_ros.core.estimation.compiled.step import CompiledStep
 from kvark_ros.core.estimation.compiled.wrench import rotate
 from kvark_ros.core.estimation.contact import CollisionDetector, ContactDetector
@@ -29,6 +30,7 @@ from kvark_ros.core.estimation.model_store import TrainedModel, load_model
 from kvark_ros.core.estimation.observers import Observer, ResidualPredictor, make_observer
 from kvark_ros.core.estimation.payload import Payload, inertia_problem
 from kvark_ros.core.estimation.robot_model import RobotModel, condition_number, urdf_sha256
+from kvark_ros.core.estimation.sample_limits import SampleLimits
 from kvark_ros.core.estimation.tare import Tare
 
 
@@ -92,10 +94,16 @@ class Status:
     WARMUP = "warm-up: first sample after start or reset"
     BAD_SHAPE = "rejected: q, qd or tau_m has the wrong length"
     NON_FINITE = "rejected: NaN, Inf or an overflowing value (|x| > 1e150) in q, qd or tau_m"
+    BEYOND_LIMITS = "rejected: q, qd or tau_m beyond the URDF's limits (with margins; docs/cli.md)"
     STAMP_NOT_INCREASING = "rejected: stamp not after the previous sample (out of order or duplicate)"
     REPEATED = "rejected: q, qd and tau_m repeat the previous sample exactly while moving (a stale sample re-sent)"
     GAP_RESET = "reset: gap between samples longer than input.max_gap"
     DIVERGED_RESET = "reset: filter produced a non-finite estimate"
+
+
+# The input check's codes (compiled.inputs) as the statuses they count under.
+_REJECTIONS = {NON_FINITE: Status.NON_FINITE, BEYOND_LIMITS: Status.BEYOND_LIMITS,
+               NOT_INCREASING: Status.STAMP_NOT_INCREASING, REPEATED: Status.REPEATED}
 
 
 def model_augmentation(config: EstimatorConfig, trained: TrainedModel) -> Augmentation | None:
@@ -167,10 +175,14 @@ class Estimator:
         self.unobservable_samples = 0     # estimates with a wrench direction the joints cannot sense (§1.4.1)
         self.status = Status.WARMUP
         self._last_sample = np.full((3, robot.n), np.nan)     # q, q̇, τ_m of the last sample taken (repeats)
+        # What a real arm can hold (the URDF's limits with margins): a sample beyond is a glitch, not data; the same
+        # bounds every command that reads a bag checks (core.estimation.sample_limits).
+        self.limits = SampleLimits.from_robot(robot)
+        self._bounds = self.limits.bounds
         # The input check's machine code now (compiled, or loaded from numba's cache), not on the first sample taken,
         # where a cold cache stalled the node ~0.4 s and its subscription dropped joint states.
         check_sample(0.0, math.nan, np.zeros(robot.n), np.zeros(robot.n), np.zeros(robot.n),
-                     np.full((3, robot.n), np.nan))
+                     np.full((3, robot.n), np.nan), self._bounds)
         self.reset()
 
     @classmethod
@@ -283,13 +295,13 @@ class Estimator:
             self._reject(Status.BAD_SHAPE)
             return None
         previous = self._stamp
-        check = check_sample(stamp, math.nan if previous is None else previous, q, qd, tau_m, self._last_sample)
+        check = check_sample(stamp, math.nan if previous is None else previous, q, qd, tau_m, self._last_sample,
+                             self._bounds)
         if check != ACCEPTED:
             # A stale state under a new stamp (REPEATED): stepping it would hold p for one period and then see the
             # whole catch-up as one momentum jump, which the onset detector takes for a contact (docs/method.md
             # §4.8). The next fresh sample's step spans both periods instead.
-            self._reject(Status.NON_FINITE if check == NON_FINITE else Status.STAMP_NOT_INCREASING
-                         if check == NOT_INCREASING else Status.REPEATED)
+            self._reject(_REJECTIONS[check])
             return None
         gap_reset = previous is not None and stamp - previous > self.config.input.max_gap
         if gap_reset:

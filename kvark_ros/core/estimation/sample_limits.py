@@ -123,6 +123,12 @@ class SampleLimits:
         return cls(robot.joint_names, lower, upper, np.asarray(model.velocityLimit)[:n],
                    np.asarray(model.effortLimit)[:n], robot.urdf_name)
 
+    @property
+    def bounds(self) -> np.ndarray:
+        """(2, 3n): the lowest and the highest [q, q̇, τ] within the limits, margins included (the compiled
+        input check's argument, ``compiled.inputs.check_sample``)."""
+        return np.stack((self._low, self._high))
+
     @classmethod
     def generic(cls, joint_names: Sequence[str]) -> SampleLimits:
         """The generic bounds only (no URDF known)."""

@@ -11,8 +11,8 @@ One call per sample computes, in this order, what ``flags`` ask for (``Flag``):
   rows ESTIMATE, VARIANCE, MEAN, VAR and its full P (any other observer, ``step.CompiledStep``):
   the tare offset (§4.10); the static friction band σ²_s(q̇) on Cov τ̂ (§4.11); the interval factors c of the
   reported Cov τ̂ = diag(c) P diag(c), at least the floor, + diag σ²_s (§4.13; the tests keep P + diag σ²_s); the
-  wrench F = J⁺ τ̂ and Σ_F = J⁺ P J⁺ᵀ with the weak directions and their damping bias (``solve_wrench`` of the wrench kernels,
-  §1.4-1.4.1); the contact statistic τ̂ᵀ S⁻¹ τ̂ with S = P + diag σ²_s + diag σ²_r (+ diag μ_r² for an observer that
+  wrench F = J⁺ τ̂ and Σ_F = J⁺ P J⁺ᵀ with the weak directions and their damping bias (the wrench kernels'
+  ``solve_wrench``, §1.4-1.4.1); the contact statistic τ̂ᵀ S⁻¹ τ̂ with S = P + diag σ²_s + diag σ²_r (+ diag μ_r² for an observer that
   does not subtract the residual; or the reported covariance with TEST_REPORTED; §7.1-7.2) and the collision excess
   max_j(|τ̂_j| − z σ_j), σ_j² = S_jj − σ²_s,j (§4.10).
 
@@ -142,7 +142,8 @@ def estimate_step(flags: int, dt: float, q: np.ndarray, qd: np.ndarray, tau_m: n
     outputs. ``buffer``: the estimator's (``split_buffer``: rows, params δ, wrench prior, v_s, z, an observer's full P,
     the weak directions); ``kmp``: a packed KMP (``residual.pack_kmp``) for KMP; ``aug``: a packed augmentation
     (``residual.pack_augmentation``) for AUGMENTED; ``state``, ``ints``, ``constants``, ``options``: the K-VARK filter's
-    (``kvark_filter``) for FILTER and PACKED. Outputs of POST: τ̂ (n,), Cov τ̂ (n, n), F (6,), Σ_F (6, 6). Returns
+    (``kvark_filter``) for FILTER and PACKED. Outputs of POST: τ̂ (n,), Cov τ̂ (n, n), F (6,), Σ_F (6, 6).
+    Returns
     (code: ``Outcome`` bits WEAK | DIVERGED | SINGULAR | UNTESTED, the contact statistic (NaN: S not positive
     definite), the collision excess (NaN: not finite), the number k of weak directions, in the buffer's first k
     columns); with SINGULAR, F and Σ_F are not set.

@@ -328,8 +328,8 @@ class Estimator:
         (singular, diverged, untested, statistic, excess, tau_ext, tau_cov, wrench, wrench_cov, rotation, jacobian,
          weak) = self._compiled.step(stamp, dt, q, qd, tau_m, self.tare, self.contact.flag)
         if singular:              # wrench.damping 0 at a singular pose: J⁺ does not exist
-            raise np.linalg.LinAlgError(f"wrench.damping {self.config.wrench.damping:g} at a singular pose: J Jᵀ + δ² I "
-                                        "is not positive definite; set wrench.damping > 0")
+            raise np.linalg.LinAlgError(f"wrench.damping {self.config.wrench.damping:g} at a singular pose: "
+                                        "J Jᵀ + δ² I is not positive definite; set wrench.damping > 0")
         if diverged:
             return self._diverged()
         self.status = Status.OK

@@ -1,6 +1,6 @@
 """The compiled checks of one input sample (``Estimator.step``, docs/method.md §4.8): finite values within the URDF's
-limits (``core.estimation.sample_limits``), a stamp after the previous one, and a driver's re-sent state. ``check_sample`` returns one of the codes below (plain ints: the estimator
-maps them to its ``Status``)."""
+limits (``core.estimation.sample_limits``), a stamp after the previous one, and a driver's re-sent state.
+``check_sample`` returns one of the codes below (plain ints: the estimator maps them to its ``Status``)."""
 from __future__ import annotations
 
 import math

@@ -12,8 +12,9 @@ One call per sample computes, in this order, what ``flags`` ask for (``Flag``):
   the tare offset (§4.10); the static friction band σ²_s(q̇) on Cov τ̂ (§4.11); the interval factors c of the
   reported Cov τ̂ = diag(c) P diag(c), at least the floor, + diag σ²_s (§4.13; the tests keep P + diag σ²_s); the
   wrench F = J⁺ τ̂ and Σ_F = J⁺ P J⁺ᵀ with the weak directions and their damping bias (the wrench kernels'
-  ``solve_wrench``, §1.4-1.4.1); the contact statistic τ̂ᵀ S⁻¹ τ̂ with S = P + diag σ²_s + diag σ²_r (+ diag μ_r² for an observer that
-  does not subtract the residual; or the reported covariance with TEST_REPORTED; §7.1-7.2) and the collision excess
+  ``solve_wrench``, §1.4-1.4.1); the contact statistic τ̂ᵀ S⁻¹ τ̂ with S = P + diag σ²_s + diag σ²_r (+ diag μ_r²
+  for an observer that does not subtract the residual; or the reported covariance with TEST_REPORTED; §7.1-7.2) and
+  the collision excess
   max_j(|τ̂_j| − z σ_j), σ_j² = S_jj − σ²_s,j (§4.10).
 
 The numpy reference of the post-step is test/core/reference_estimator.py; the two differ by rounding only (sums run
@@ -138,7 +139,8 @@ def estimate_step(flags: int, dt: float, q: np.ndarray, qd: np.ndarray, tau_m: n
     """One ``Estimator.step`` after its input checks and pinocchio passes (module docstring).
 
     ``flags``: ``Flag`` bits. ``q`` (n,) rad, ``qd`` (n,) rad/s, ``tau_m`` (n,) N·m: the sample; ``gravity`` g,
-    ``rnea`` = M q̇ + g, ``coriolis`` C, ``jac`` J (6, n) in base axes, ``rotation`` R (3, 3) of the ee axes: pinocchio's
+    ``rnea`` = M q̇ + g, ``coriolis`` C, ``jac`` J (6, n) in base axes, ``rotation`` R (3, 3) of the ee axes:
+    pinocchio's
     outputs. ``buffer``: the estimator's (``split_buffer``: rows, params δ, wrench prior, v_s, z, an observer's full P,
     the weak directions); ``kmp``: a packed KMP (``residual.pack_kmp``) for KMP; ``aug``: a packed augmentation
     (``residual.pack_augmentation``) for AUGMENTED; ``state``, ``ints``, ``constants``, ``options``: the K-VARK filter's

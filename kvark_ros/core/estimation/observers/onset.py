@@ -39,8 +39,8 @@ The detector belongs to the Σ_d adaptation (a jump is the limit of a large Σ_d
 so only the variants with VB use it; the fixed-Q ablations (``kf``, ``kmp_kf*``) stay the paper's
 baselines.
 
-Here: the detector's constants and state; its arithmetic runs in the compiled step (``compiled.kvark_filter.kvark_step``), its
-numpy reference is ``ReferenceOnsetDetector`` in test/core/reference_filter.py.
+Here: the detector's constants and state; its arithmetic runs in the compiled step
+(``compiled.kvark_filter.kvark_step``), its numpy reference is ``ReferenceOnsetDetector`` in test/core/reference_filter.py.
 """
 from __future__ import annotations
 

@@ -29,8 +29,8 @@ would give most of any change to the random walk's past), with P_zz and Cov(τ, 
 errors. Nothing feeds back; the twin lags a fast change, so q̂ rises somewhat less when τ_ext moves
 (docs/method.md §4.6 has the measured trade).
 
-Here: the component's constants and state; its arithmetic runs in the compiled step (``compiled.kvark_filter.kvark_step``),
-its numpy reference is ``ReferenceWindowVB`` in test/core/reference_filter.py.
+Here: the component's constants and state; its arithmetic runs in the compiled step
+(``compiled.kvark_filter.kvark_step``), its numpy reference is ``ReferenceWindowVB`` in test/core/reference_filter.py.
 """
 from __future__ import annotations
 

@@ -236,14 +236,6 @@ KEYS: tuple[Key, ...] = (
          **_unit(0.0, 60.0, low_open=True)),
     _key("tare.max_speed", "number", 0.02, "rad/s; ~/tare refuses (and stops) while any joint moves faster",
          runtime=True, **_unit(0.0, 10.0, low_open=True)),
-    _key("load.identify", "choice", "off",
-         "on: the load at the flange is a state of the estimator, identified online in free motion (θ, mass, centre "
-         "of mass and inertia with 95 % intervals; ~/payload), the filter estimating the contact part around it "
-         "(docs/method.md §8); K-VARK family observers only", choices=("off", "on")),
-    _key("load.prior_mass", "number", 5.0, "kg; prior standard deviation of the load's mass (first moments × "
-         "load.prior_radius, inertia × its square)", **_unit(0.0, 1e4, low_open=True)),
-    _key("load.prior_radius", "number", 0.1, "m; how far from the flange the load's mass may sit (its prior)",
-         **_unit(0.0, 10.0, low_open=True)),
     _key("diagnostics.max_loss", "number", 0.01,
          "share of joint states lost (gaps in their stamps) above which /diagnostics warns", runtime=True,
          **_unit(0.0, 1.0)),

@@ -11,7 +11,7 @@ from typing import Literal
 from kvark_ros.core.estimation.payload import Payload
 
 __all__ = ["WrenchSettings", "FilterSettings", "InputSettings", "ContactSettings", "OutputSettings", "TareSettings",
-           "LoadSettings", "DiagnosticsSettings", "EstimatorConfig", "SETTINGS_BY_GROUP"]
+           "DiagnosticsSettings", "EstimatorConfig", "SETTINGS_BY_GROUP"]
 
 
 @dataclass(frozen=True)
@@ -162,21 +162,6 @@ class TareSettings:
 
 
 @dataclass(frozen=True)
-class LoadSettings:
-    """The ``load`` keys of the config (config_schema.KEYS)."""
-
-    identify: Literal["off", "on"] = "off"
-    """on: the load at the flange is a state of the estimator, identified online in free motion (θ, mass, centre of mass
-    and inertia with 95 % intervals; ~/payload), the filter estimating the contact part around it (docs/method.md §8);
-    K-VARK family observers only. Allowed: one of off, on."""
-    prior_mass: float = 5.0
-    """kg; prior standard deviation of the load's mass (first moments × load.prior_radius, inertia × its square).
-    Allowed: a number in (0.0, 10000.0]."""
-    prior_radius: float = 0.1
-    """m; how far from the flange the load's mass may sit (its prior). Allowed: a number in (0.0, 10.0]."""
-
-
-@dataclass(frozen=True)
 class DiagnosticsSettings:
     """The ``diagnostics`` keys of the config (config_schema.KEYS)."""
 
@@ -229,8 +214,6 @@ class EstimatorConfig:
     """the output.* keys"""
     tare: TareSettings = field(default_factory=TareSettings)
     """the tare.* keys"""
-    load: LoadSettings = field(default_factory=LoadSettings)
-    """the load.* keys"""
     diagnostics: DiagnosticsSettings = field(default_factory=DiagnosticsSettings)
     """the diagnostics.* keys"""
 
@@ -248,6 +231,5 @@ SETTINGS_BY_GROUP: dict[str, type] = {
     "contact": ContactSettings,
     "output": OutputSettings,
     "tare": TareSettings,
-    "load": LoadSettings,
     "diagnostics": DiagnosticsSettings,
 }

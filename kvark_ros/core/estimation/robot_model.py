@@ -201,10 +201,6 @@ class RobotModel:
         self.data = self.model.createData()
         self.terms = LiveTerms(self.data.g, self.data.tau, self.data.C, self.data.oMf[self.ee_frame_id].rotation)
         self._zero = np.zeros(self.model.nv)
-        # θ_link = A θ_flange: the flange-frame parameters of a load as its link's (a change of frame is linear)
-        base = flange_link_parameters(self.model, self.flange_frame_id)
-        self._flange_to_link = np.column_stack([flange_link_parameters(self.model, self.flange_frame_id, unit) - base
-                                                for unit in np.eye(10)])
         self.payload: Payload | None = None
         if payload is not None:
             self.set_payload(payload)
@@ -282,33 +278,15 @@ class RobotModel:
         return self._true_q(q)
 
     def set_payload(self, payload: Payload | None) -> None:
-        """Attach (or with ``None`` remove) a payload at the flange; replaces any earlier one (and an identified load,
-        ``set_load``)."""
-        if payload is not None and payload.mass <= 0.0:
-            raise RobotModelError(f"payload mass must be positive, got {payload.mass}")
-        self.payload = payload
-        self.set_load(None)
-
-    def set_load(self, theta: np.ndarray | None) -> None:
-        """Add an identified load θ (10,) at the flange (its dynamic parameters in the flange frame, pinocchio's
-        order ``[m, m c, I_o]``; any values, a non-physical estimate too) on top of the known payload; ``None``:
-        none. The load's torque is then part of the model: ``M q̈ + C q̇ + g`` include it (docs/method.md §8)."""
+        """Attach (or with ``None`` remove) a payload at the flange; replaces any earlier one."""
         frame = self.model.frames[self.flange_frame_id]
         joint = frame.parentJoint
-        inertia = pin.Inertia(self._nominal_inertias[joint])
-        if self.payload is not None:
-            inertia = inertia + frame.placement.act(self.payload.to_pinocchio())
-        if theta is not None:
-            inertia = inertia + frame.placement.act(pin.Inertia.FromDynamicParameters(np.asarray(theta, dtype=float)))
-        self.model.inertias[joint] = inertia
-
-    def load_regressor(self, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
-        """Y (n, 10): the joint torque ``Y θ`` (N·m) a load θ at the flange (``set_load``'s parameters) needs to move
-        along (q, q̇, q̈), gravity included (pinocchio's joint-torque regressor of the flange's link, mapped from that
-        link's frame to the flange frame)."""
-        jid = self.model.frames[self.flange_frame_id].parentJoint
-        columns = pin.computeJointTorqueRegressor(self.model, self.data, self._true_q(q), qd, qdd)
-        return columns[:, 10 * (jid - 1):10 * jid] @ self._flange_to_link
+        self.model.inertias[joint] = pin.Inertia(self._nominal_inertias[joint])
+        if payload is not None:
+            if payload.mass <= 0.0:
+                raise RobotModelError(f"payload mass must be positive, got {payload.mass}")
+            self.model.inertias[joint] = self.model.inertias[joint] + frame.placement.act(payload.to_pinocchio())
+        self.payload = payload
 
     def mass_matrix(self, q: np.ndarray) -> np.ndarray:
         """M(q): (n, n) kg·m², symmetric."""

@@ -205,7 +205,7 @@ def keep_population(out: Path, stdout: str) -> dict:
 
 def render_population(data: dict) -> str:
     failed = f"; {data['failed']} failed" if data["failed"] else ""
-    lines = [f"Seed {data['seed']}, never run before this measurement: {', '.join(data['robots'])}{failed}. "
+    lines = [f"Seed {data['seed']}: {', '.join(data['robots'])}{failed}. "
              "Median / 90th percentile / worst over robots × scenes (for coverage the 10th percentile and the "
              "lowest), on the diagnosed model:", "",
              "| arm class | cells | " + " | ".join(POPULATION_FIGURES) + " |",
@@ -214,7 +214,8 @@ def render_population(data: dict) -> str:
         cells = [" / ".join(number(group["figures"][key][q], 3) for q in ("median", "p90", "worst"))
                  if key in group["figures"] else "–" for key in POPULATION_FIGURES]
         lines.append(f"| {name} | {group['cells']} | " + " | ".join(cells) + " |")
-    lines += ["", "Acceptance (issue 28), pooled over every robot and scene:", ""]
+    lines += ["", "The acceptance lines (their limits: `kvark_ros/tools/acceptance.py`), pooled over every robot and scene:",
+              ""]
     lines += data["groups"]["pooled"]["acceptance"]
     return "\n".join(lines)
 

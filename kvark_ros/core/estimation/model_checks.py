@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-RATE_TOLERANCE = 0.2     # relative difference of the data's rate from the model's that warns (issue 15: 20 %)
+RATE_TOLERANCE = 0.2     # relative rate difference that warns: the model's noise levels are per sample
 
 
 def measured_rate(stamp: np.ndarray) -> float:

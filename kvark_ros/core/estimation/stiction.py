@@ -2,8 +2,8 @@
 
 A sliding joint's friction is a function of its velocity, which the residual model learns. A joint at
 rest is different: its friction is whatever keeps it at rest, anywhere in [−F_s, F_s], and the measured
-torque cannot tell that friction from an external torque (issue 17 measured ±18 N at a UR5's tool
-after each push at standstill). So near q̇_j = 0 the external torque is known only up to that band.
+torque cannot tell that friction from an external torque (a simulated UR5 pushed at standstill holds up to
+about 18 N of it at the tool after each push). So near q̇_j = 0 the external torque is known only up to that band.
 
 The band F_s,j is identified at training from the friction the model sees: the residual τ_r plus the
 augmentation's friction effects (docs/method.md §4.11), as half the jump of its median across zero

@@ -22,7 +22,7 @@ statistic comes from samples already filtered.
 
 Whose τ̂ (``filter.vb_window_source``). Read from the adaptive filter itself (``estimate``, the default) the statistic
 feeds back: a larger Σ_d passes more of the residual model's coloured misfit into τ̂, whose change raises Σ_d further.
-On a robot whose misfit at new motions exceeds training's (the population's UR-class arms, issue 28) one push lifts
+On a robot whose misfit at new motions exceeds training's (the population's UR-class arms) one push lifts
 q̂ to ~10³ q_0 and the misfit holds it there through free motion. ``prior`` reads a twin filter on the same data held
 at Σ_d0 = q_0 h (``twin_*``), its snapshots kept as taken (filtered, not smoothed: under a model at Σ_d0 the smoother
 would give most of any change to the random walk's past), with P_zz and Cov(τ, z) the covariance of the two filtered

@@ -1,7 +1,7 @@
 """GP hyperparameters by maximum marginal likelihood, for the KMP (docs/method.md §3.4, §3.7) and the GP baselines.
 
 The fit scikit-learn's ``GaussianProcessRegressor(alpha=1e-10)`` makes with the kernel ``ConstantKernel · RBF (one
-length scale per input) + WhiteKernel``, which the fits used before (issue 16): L-BFGS-B on the log hyperparameters
+length scale per input) + WhiteKernel``, whose optimum the tests hold this fit to: L-BFGS-B on the log hyperparameters
 θ = log(σ_f², ℓ₁ … ℓ_d, σ_n²) from θ₀, then from ``n_restarts`` points drawn uniformly within the log bounds by
 ``RandomState(seed)``, the best kept. What differs is the arithmetic, not the objective:
 

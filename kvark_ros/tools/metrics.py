@@ -11,6 +11,7 @@ from kvark_ros.core.contact_events import CONTACT_TORQUE, contact_free, contacts
 from kvark_ros.core.estimation.contact import chi2_quantile
 
 Z95 = 1.96                                  # half-width of the 95 % interval in σ (coverage95, as it always was)
+ALPHA95 = 0.05                              # 1 − the nominal coverage of that interval (the interval score's α)
 LEVELS = (0.5, 0.8, 0.9, 0.95, 0.99)        # nominal coverages of the reliability table
 
 
@@ -94,8 +95,19 @@ def wrench_metrics(wrench: np.ndarray, truth: np.ndarray, rows: np.ndarray) -> d
             "force_rmse_mean": _rounded(rmse[:3].mean()), "moment_rmse_mean": _rounded(rmse[3:].mean())}
 
 
-CALIBRATION_KEYS = ("coverage95_per_joint", "interval95_per_joint", "vector_coverage95", "any_joint_miss_share",
-                    "any_joint_miss_nominal", "reliability")
+CALIBRATION_KEYS = ("coverage95_per_joint", "interval95_per_joint", "interval_score95", "interval_score95_per_joint",
+                    "vector_coverage95", "any_joint_miss_share", "any_joint_miss_nominal", "reliability")
+
+
+def interval_score(lower: np.ndarray, upper: np.ndarray, truth: np.ndarray, alpha: float) -> np.ndarray:
+    """The interval score of central (1 − α) prediction intervals [l, u] at the true values x (arrays of one shape,
+    N·m): ``(u − l) + (2/α)(l − x)·1{x < l} + (2/α)(x − u)·1{x > u}`` (Gneiting & Raftery 2007, eq. 43, negatively
+    oriented: lower is better). A proper score: a forecaster minimises its expectation only by reporting the true
+    quantiles, so a narrow interval that misses and a wide one that always covers both pay, where coverage alone
+    rewards the wide one."""
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha must be in (0, 1), got {alpha}")
+    return (upper - lower) + (2.0 / alpha) * (np.maximum(lower - truth, 0.0) + np.maximum(truth - upper, 0.0))
 
 
 def mahalanobis_squared(error: np.ndarray, covariance: np.ndarray) -> float:
@@ -127,6 +139,8 @@ def calibration_metrics(error: np.ndarray, std: np.ndarray, mahalanobis: np.ndar
 
     ``coverage95_per_joint``: per joint, the share of samples with |e| ≤ 1.96 σ; ``interval95_per_joint``: the mean
     half-width 1.96 σ (N·m) of that interval, what a coverage costs (wider is safer and less useful).
+    ``interval_score95`` (and ``_per_joint``): the mean :func:`interval_score` of τ̂ ± 1.96 σ at α = 0.05, N·m: width
+    and misses in one figure (lower is better).
     ``vector_coverage95``: the share of samples with eᵀP⁻¹e ≤ χ²_n(0.95), the 95 % ellipsoid of the whole vector
     (correlations count). A miss on any of n joints is far likelier than 5 %: ``any_joint_miss_share`` against
     ``any_joint_miss_nominal`` = 1 − 0.95ⁿ (its value for independent, calibrated joints). ``reliability``: at each
@@ -135,12 +149,15 @@ def calibration_metrics(error: np.ndarray, std: np.ndarray, mahalanobis: np.ndar
     """
     n = error.shape[1]
     inside = np.abs(error) <= Z95 * std
+    score = interval_score(error - Z95 * std, error + Z95 * std, np.zeros_like(error), ALPHA95)   # τ̂ − τ against 0
     finite = mahalanobis[np.isfinite(mahalanobis)] if mahalanobis is not None else np.zeros(0)
     z = ndtri(0.5 + 0.5 * np.array(LEVELS))
     joint = [float(np.mean(np.abs(error) <= level_z * std)) for level_z in z]
     vector = [float(np.mean(finite <= chi2_quantile(level, n))) for level in LEVELS] if len(finite) else None
     return {"coverage95_per_joint": _rounded(inside.mean(axis=0)),
             "interval95_per_joint": _rounded(Z95 * std.mean(axis=0)),
+            "interval_score95": _rounded(float(score.mean())),
+            "interval_score95_per_joint": _rounded(score.mean(axis=0)),
             "vector_coverage95": _rounded(float(np.mean(finite <= chi2_quantile(0.95, n)))) if len(finite) else None,
             "any_joint_miss_share": _rounded(float((~inside).any(axis=1).mean())),
             "any_joint_miss_nominal": _rounded(1.0 - 0.95 ** n),

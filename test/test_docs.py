@@ -13,10 +13,12 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))
 
-from doc_blocks import DOCUMENTS, generated_sections, shell_blocks  # noqa: E402
+from doc_blocks import DOCUMENTS, FENCE, generated_sections, shell_blocks  # noqa: E402
 from results_doc import DATA, SECTIONS, glance_table, node_costs, provenance  # noqa: E402
 
-README_MAX_LINES = 300      # the issue's bound: what it is, quick start, ROS usage, results at a glance, links
+from kvark_ros.core.config_schema import keys_table  # noqa: E402
+
+README_MAX_LINES = 200      # what it is, quick start, use, ROS usage, results at a glance, links: a few screens
 
 
 def test_readme_fits_and_its_contents_and_links_exist():
@@ -65,3 +67,105 @@ def test_no_table_of_figures_outside_generated_sections():
             text = text.replace(body, "")
         rows = [line for line in text.splitlines() if line.startswith("|") and re.search(r"\|\s*[\d.]+\d\s*[|/]", line)]
         assert not rows, f"{document}: a table of figures outside a generated section: {rows[0]}"
+
+
+# What reads as a measured result typed by hand (``test_no_hand_typed_figure_outside_generated_sections``).
+NUMBER = r"(?<![\w.§/-])[−+-]?\d+(?:\.\d+)?"
+PRECISE = re.compile(r"(?<![\w.§])\d*\.\d+(?![\w.]*\d)")           # a decimal number, to count its digits
+# A number, then within the clause (48 characters without a digit or a stop) a word of comparison and a number.
+COMPARISON = re.compile(NUMBER + r"[^\d.;:()\n]{0,48}?(?:→|\bvs\b\.?|\bagainst\b|\binstead of\b)\s+(?:`?[\w-]+`?'s\s+)?"
+                        + NUMBER + "|" + r"\bfrom\s+" + NUMBER + r"[^\d.;:()\n]{0,48}?\bto\s+" + NUMBER)
+COST = re.compile(NUMBER + r"\s?(?:µs|k instructions|M instructions)")
+# Not figures: a section number (§4.13, §4.5-4.6, a numbered heading's), a version of the software the documents name.
+SECTION_NUMBER = re.compile(r"§\s?\d+(?:\.\d+)*(?:[-–]\d+(?:\.\d+)*)?|^#+ \d+(?:\.\d+)*", re.MULTILINE)
+VERSION = re.compile(r"\b(?:Python|Ubuntu)\s+\d+(?:\.\d+)+(?:-\d+(?:\.\d+)+)?")
+# Constants that are definitions, with why (a short list: a new entry needs a reason of this kind).
+DEFINITIONS = {"1.96": "the two-sided 95 % quantile of the normal distribution, which defines every interval"}
+FIGURE_DOCUMENTS = (*DOCUMENTS, *sorted(str(path.relative_to(ROOT)) for path in (ROOT / "docs" / "notes").glob("*.md")))
+
+
+def blanked(text: str, pattern: re.Pattern) -> str:
+    """``text`` with every match of ``pattern`` replaced by its own line breaks (line numbers kept)."""
+    return pattern.sub(lambda match: "\n" * match.group(0).count("\n"), text)
+
+
+def prose_lines(document: str) -> list[str]:
+    """The lines of ``document`` a reader reads as prose: generated sections, docs/configuration.md's key table,
+    fenced and indented code blocks (equations, commands, outputs) and inline code (keys, values, commands) blanked."""
+    text = (ROOT / document).read_text()
+    for body in generated_sections(text).values():
+        text = text.replace(body, "\n" * body.count("\n"))
+    if document == "docs/configuration.md":          # the key table: from its header row to the blank line after
+        start = text.index(keys_table().splitlines()[0])
+        end = text.find("\n\n", start)
+        end = len(text) if end < 0 else end
+        text = text[:start] + "\n" * text.count("\n", start, end) + text[end:]
+    text = blanked(blanked(text, FENCE), re.compile(r"`[^`]*`"))
+    lines, indent, previous = [], 0, ""
+    for line in text.splitlines():
+        item = re.match(r"( *)(?:\d+\.|[-*+]) +", line)
+        depth = len(line) - len(line.lstrip(" "))
+        if line.strip() and not item and not previous.strip() and depth >= indent + 4:
+            lines.append("")                         # an indented code block: after a blank line, 4 beyond the list
+            continue
+        if item:
+            indent = len(item.group(0))
+        elif line.strip() and depth < indent:
+            indent = 0
+        lines.append(line)
+        previous = line
+    return lines
+
+
+def hand_typed_figures(line: str) -> list[str]:
+    """The figures of one prose line (``test_no_hand_typed_figure_outside_generated_sections``)."""
+    line = blanked(blanked(line, SECTION_NUMBER), VERSION)
+    figures = [number for number in PRECISE.findall(line)
+               if len(number.replace(".", "").lstrip("0")) >= 3 and number not in DEFINITIONS]
+    return figures + [match.group(0) for pattern in (COMPARISON, COST) for match in pattern.finditer(line)]
+
+
+@pytest.mark.parametrize("document", FIGURE_DOCUMENTS)
+def test_no_hand_typed_figure_outside_generated_sections(document):
+    """A measured figure is rendered from docs/results.json into a generated section, where the test above checks it
+    against its command; typed by hand it goes stale unseen. A figure, in the prose of README.md, docs/*.md and
+    docs/notes/*.md, is a measured result written by hand:
+
+    1. a decimal number of three or more significant digits (0.675, 1.37, 58.2, 0.0329): results are quoted at that
+       precision, definitions are round (a default of 0.05 rad/s, a 0.2 s window, a bound of 8.5 N·m);
+    2. any number in a comparison, two numbers in one clause joined by →, "vs", "against" or "instead of", or
+       "from … to" ("58 ms … instead of 112", "0.70 → 3.6", "0.56 against 0.83", "from 0.54 to 0.086"): a tuning
+       log's before and after;
+    3. a cost per call in µs or instructions ("9 µs/step"): one machine's timing.
+
+    Not figures: generated sections; docs/configuration.md's key table (``make generated``, checked by
+    test/test_documented_keys.py); fenced and indented code blocks (equations, commands, outputs) and inline code
+    (keys, values, commands); section numbers (§4.13, a numbered heading's); versions of the software named
+    (Python 3.10-3.12, Ubuntu 24.04); and the constants of ``DEFINITIONS``, each with the reason it is one. An
+    example inside a derivation keeps to round numbers (docs/method.md: "c = 0.05 at σ = 0.22"); a reason for a
+    default names the results section that shows it (docs/findings.md), and what was tried and not kept names the
+    commit that holds its measurement (docs/notes/)."""
+    found = [f"{document}:{number}: {figures}" for number, line in enumerate(prose_lines(document), start=1)
+             if (figures := hand_typed_figures(line))]
+    assert not found, "hand-typed figures (move them into a generated section, or name where they are):\n" + \
+        "\n".join(found)
+
+
+@pytest.mark.parametrize("line, figures", [
+    ("real UR10e free motion 0.675 → 0.711 N·m", ["0.675", "0.711", "0.675 → 0.711"]),
+    ("a push is flagged at a median 58 ms after it exceeds the band instead of 112",
+     ["58 ms after it exceeds the band instead of 112"]),
+    ("flagged 58 ms instead of 112 (`kf` 95)", ["58 ms instead of 112"]),
+    ("the contact 0.73 vs 0.16 N·m", ["0.73 vs 0.16"]),
+    ("it cut the RMSE from 0.54 to 0.086 N·m", ["from 0.54 to 0.086"]),
+    ("coverage 0.56 against `kf`'s 0.83", ["0.56 against `kf`'s 0.83"]),
+    ("the momentum observer was 1.37× slower", ["1.37"]),
+    ("~9 µs/step", ["9 µs"]),
+    ("`filter.stiction_velocity` (0.05 rad/s), a 0.2 s window, ±1.96 σ", []),
+    ("§4.13 and §4.10-4.13, Python 3.10-3.12 on Ubuntu 24.04", []),
+    ("c = 0.05 at σ = 0.22, the home pose", []),
+])
+def test_what_reads_as_a_figure(line, figures):
+    """The figure rule on its own examples: measured results are found, definitions, section numbers and versions
+    are not."""
+    assert hand_typed_figures(line) == figures

@@ -1,7 +1,7 @@
 """One frozen configuration shared by the ROS node, the trainer and the bag replay.
 
-The YAML file is the node's parameter file (``kvark_estimator: ros__parameters: ...``), so the
-same file configures live and offline runs. Nested groups map to dotted ROS parameter names
+The YAML file is the node's parameter file (``kvark_estimator: ros__parameters: ...``, or
+``/**/kvark_estimator:`` to match the node in any namespace), so the same file configures live and offline runs. Nested groups map to dotted ROS parameter names
 (``filter.ewma_time``). The keys, their checks, defaults and meanings are the one table of
 ``kvark_ros.core.config_schema``; ``EstimatorConfig`` and its typed groups (``config.filter``,
 ``config.wrench``, ...) are generated from it into ``kvark_ros.core.settings`` and re-exported here, so a new
@@ -11,17 +11,21 @@ and what is allowed.
 """
 from __future__ import annotations
 
+import fnmatch
 import os
 import sys
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Mapping
+
+import yaml
 
 from kvark_ros.core.config_schema import (KEYS, KEYS_BY_NAME, MEASUREMENTS, NODE_NAME, OBSERVER_NAMES, REMOVED_KEYS,
                                           RENAMED_KEYS, VB_VARIANTS, WRENCH_FRAMES, Key, vb_variant_problem)
 from kvark_ros.core.files import read_yaml
 from kvark_ros.core.hints import did_you_mean, nearest
-from kvark_ros.core.estimation.payload import Payload
+from kvark_ros.core.estimation.payload import Payload, old_order_problem
 from kvark_ros.core.settings import (SETTINGS_BY_GROUP, ContactSettings, DiagnosticsSettings, EstimatorConfig,
                                      FilterSettings, InputSettings, OutputSettings, TareSettings, WrenchSettings)
 
@@ -29,10 +33,14 @@ __all__ = ["NODE_NAME", "OBSERVER_NAMES", "WRENCH_FRAMES", "VB_VARIANTS", "MEASU
            "ConfigError", "EstimatorConfig", "FilterSettings", "WrenchSettings", "InputSettings", "ContactSettings",
            "DiagnosticsSettings", "OutputSettings", "TareSettings", "flatten_parameters", "config_from_parameters",
            "parameter_defaults", "default_filter_settings", "load_config", "with_resolved_paths", "default_config_path",
-           "parse_observers"]
+           "parse_observers", "applies_to", "file_parameters", "resolved_against_files", "resolved_path",
+           "launch_parameters", "ANY_NAMESPACE"]
 
 EXAMPLE_ROBOT_DATA_PREFIX = "example-robot-data:"
 ROBOT_DESCRIPTION = "robot_description"       # robot_model.urdf: the node takes the URDF from this topic
+SECTION = "ros__parameters"
+ANY_NAMESPACE = f"/**/{NODE_NAME}"            # a file's key for the node in any namespace (rcl's wildcard)
+PATH_KEYS = ("robot_model.urdf", "residual_model.model_dir", "model_augmentation")
 
 
 class ConfigError(ValueError):
@@ -101,10 +109,56 @@ def config_from_parameters(parameters: Mapping[str, Any], source: str = "configu
     top = {key.attr: values[key.name] for key in KEYS if key.group is None}
     groups = {group: settings(**{key.attr: values[key.name] for key in KEYS if key.group == group})
               for group, settings in SETTINGS_BY_GROUP.items()}
-    mass = values["robot_model.payload.mass"]
-    payload = None if mass == 0.0 else Payload(mass, values["robot_model.payload.com"],
-                                               values["robot_model.payload.inertia"])
+    n = len(values["robot_model.joint_names"])
+    for name in ("input.effort_scale", "input.effort_offset"):
+        if len(values[name]) not in (1, n):
+            raise ConfigError(f"{source}: key '{name}' has {len(values[name])} values; give 1 (every joint) or {n} "
+                              f"(one per robot_model.joint_names)")
+    mass, inertia = values["robot_model.payload.mass"], values["robot_model.payload.inertia"]
+    problem = old_order_problem(inertia) if mass > 0.0 else None
+    if problem is not None:
+        raise ConfigError(f"{source}: key 'robot_model.payload.inertia' {problem}")
+    payload = None if mass == 0.0 else Payload.from_message_order(mass, values["robot_model.payload.com"], inertia)
     return EstimatorConfig(**top, payload=payload, **groups)
+
+
+def applies_to(key: str, node: str | None = None) -> bool:
+    """Whether a parameter file's top-level ``key`` applies to the node ``node`` (fully qualified, e.g.
+    ``/lbr/kvark_estimator``) as rcl matches them: a key is a fully qualified name with or without the leading
+    ``/``, ``*`` standing for one name and ``**`` for any number (``/**/kvark_estimator``, ``/**``). ``node`` None:
+    a ``kvark_estimator`` in any namespace (the commands, which run no node)."""
+    pattern = [token for token in str(key).strip("/").split("/") if token]
+    if node is None:
+        return bool(pattern) and (pattern[-1] == "**" or fnmatch.fnmatchcase(NODE_NAME, pattern[-1]))
+    return _matches(pattern, [token for token in node.strip("/").split("/") if token])
+
+
+def _matches(pattern: list[str], names: list[str]) -> bool:
+    if not pattern:
+        return not names
+    if pattern[0] == "**":
+        return any(_matches(pattern[1:], names[k:]) for k in range(len(names) + 1))
+    return bool(names) and fnmatch.fnmatchcase(names[0], pattern[0]) and _matches(pattern[1:], names[1:])
+
+
+def file_parameters(document: Any, source: str, node: str | None = None) -> dict[str, Any]:
+    """The dotted parameters a parameter file gives ``node`` (``applies_to``): the ``ros__parameters`` of every
+    top-level key that applies, later keys overriding earlier ones as rcl applies them. ConfigError when none
+    applies or one is not a mapping."""
+    flat: dict[str, Any] = {}
+    found = False
+    for key, section in (document.items() if isinstance(document, Mapping) else ()):
+        if not applies_to(key, node):
+            continue
+        parameters = section.get(SECTION) if isinstance(section, Mapping) else None
+        if not isinstance(parameters, Mapping):
+            raise ConfigError(f"{source}: '{key}.{SECTION}' must be a mapping")
+        flat.update(flatten_parameters(parameters))
+        found = True
+    if not found:
+        raise ConfigError(f"{source}: expected a top-level '{NODE_NAME}: {SECTION}:' mapping (or '{ANY_NAMESPACE}:' "
+                          "for the node in any namespace)")
+    return flat
 
 
 def parse_observers(text: str, with_oracle: bool = False) -> list[str]:
@@ -128,7 +182,8 @@ def parameter_defaults() -> dict[str, Any]:
 
 
 def load_config(path: str | os.PathLike, **overrides: Any) -> EstimatorConfig:
-    """Read ``kvark_estimator: ros__parameters:`` from a YAML file and validate it.
+    """Read ``kvark_estimator: ros__parameters:`` (every key that applies: ``file_parameters``) from a YAML file and
+    validate it.
 
     ``overrides`` replace dotted keys (``observer="kf"``); relative ``model_dir``, URDF and
     ``model_augmentation`` paths are resolved against the YAML file's own folder (one rule, wherever
@@ -137,27 +192,62 @@ def load_config(path: str | os.PathLike, **overrides: Any) -> EstimatorConfig:
     source = str(path)
     document = read_yaml(path, ConfigError, "config file", "pass an existing config such as config/panda.yaml",
                          "pass a YAML file such as config/panda.yaml")
-    try:
-        parameters = document[NODE_NAME]["ros__parameters"]
-    except (TypeError, KeyError) as exc:
-        raise ConfigError(f"{source}: expected a top-level '{NODE_NAME}: ros__parameters:' mapping") from exc
-    if not isinstance(parameters, Mapping):
-        raise ConfigError(f"{source}: '{NODE_NAME}.ros__parameters' must be a mapping")
-    flat = flatten_parameters(parameters)
+    flat = file_parameters(document, source)
     flat.update({key.replace("__", "."): value for key, value in overrides.items()})
     config = config_from_parameters(flat, source)
     return with_resolved_paths(config, Path(path).resolve().parent)
 
 
+def resolved_path(text: str, folder: Path | None) -> str:
+    """A path value made absolute against ``folder`` (None: kept); a URDF string, example-robot-data, the topic and
+    '' are no file."""
+    if (folder is None or not text or text.startswith(("<", EXAMPLE_ROBOT_DATA_PREFIX)) or text == ROBOT_DESCRIPTION
+            or os.path.isabs(text)):
+        return text
+    return os.path.normpath(folder / text)
+
+
+def _with_folders(config: EstimatorConfig, folders: Mapping[str, Path | None]) -> EstimatorConfig:
+    """The config with each of ``PATH_KEYS`` resolved against its folder in ``folders``."""
+    return replace(config, urdf=resolved_path(config.urdf, folders["robot_model.urdf"]),
+                   model_dir=resolved_path(config.model_dir, folders["residual_model.model_dir"]),
+                   model_augmentation=resolved_path(config.model_augmentation, folders["model_augmentation"]))
+
+
 def with_resolved_paths(config: EstimatorConfig, folder: Path) -> EstimatorConfig:
     """Relative file paths of the config made absolute against ``folder``, the config file's folder."""
-    def resolve(text: str) -> str:
-        if text.startswith(("<", EXAMPLE_ROBOT_DATA_PREFIX)) or text == ROBOT_DESCRIPTION or os.path.isabs(text):
-            return text
-        return os.path.normpath(folder / text)
+    return _with_folders(config, dict.fromkeys(PATH_KEYS, folder))
 
-    return replace(config, urdf=resolve(config.urdf), model_dir=resolve(config.model_dir),
-                   model_augmentation=resolve(config.model_augmentation) if config.model_augmentation else "")
+
+def launch_parameters(path: str | os.PathLike) -> dict[str, Any]:
+    """The dotted parameters a config file gives the node (``file_parameters``: every key of it that applies, in any
+    namespace) with relative paths made absolute against the file's folder, as ``kvark`` resolves them: the
+    parameter dictionary the launch file passes, which applies under any namespace."""
+    source = str(path)
+    document = read_yaml(path, ConfigError, "config file", "pass an existing config such as config/panda.yaml",
+                         "pass a YAML file such as config/panda.yaml")
+    parameters = file_parameters(document, source)
+    folder = Path(path).resolve().parent
+    for key in PATH_KEYS:
+        if isinstance(parameters.get(key), str):
+            parameters[key] = resolved_path(parameters[key], folder)
+    return parameters
+
+
+def resolved_against_files(config: EstimatorConfig, files: Sequence[str | os.PathLike], node: str,
+                           fallback: Path | None) -> EstimatorConfig:
+    """Relative file paths of a node's config made absolute as ``kvark`` makes them: each against the folder of the
+    last of the parameter ``files`` (``--params-file``, in the order given) that sets it for ``node``, the file rcl
+    took the value from; a path no file sets (a launch file's dictionary, a default) against ``fallback``."""
+    folders: dict[str, Path | None] = dict.fromkeys(PATH_KEYS, fallback)
+    for file in files:
+        try:
+            document = yaml.safe_load(Path(file).read_text())
+            given = file_parameters(document, str(file), node)
+        except (OSError, yaml.YAMLError, ConfigError):
+            continue                  # rcl read it, or refused the node's start: nothing of ours from it
+        folders.update({key: Path(file).resolve().parent for key in PATH_KEYS if key in given})
+    return _with_folders(config, folders)
 
 
 def default_config_path(robot: str) -> Path:

@@ -29,6 +29,11 @@ OUTPUT_QOS = ("reliable", "sensor_data")
 CONTACT_TEST_COVARIANCES = ("residual", "reported")
 # How a joint's τ_m is measured; sets how wide ``kvark diagnose``'s priors are (gap/priors.py, docs/method.md §8).
 TORQUE_MEASUREMENTS = ("link_torque_sensor", "motor_current", "commanded_effort")
+# Whose wrench the node publishes: the environment's on the robot (τ_ext = Jᵀ F, kvark's), or the robot's on the
+# environment (−F: Franka's O_F_ext_hat_K and K_F_ext_hat_K).
+WRENCH_CONVENTIONS = ("acting_on_robot", "applied_by_robot")
+# geometry_msgs/Inertia's and URDF's order of an inertia's six values.
+INERTIA_ORDER = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
 # The VB readings each form of the filter implements (docs/method.md §4.5-4.6).
 VB_VARIANTS_BY_MEASUREMENT = {"momentum": ("paper", "smoothed", "window"), "difference": ("paper", "huang")}
 
@@ -51,8 +56,9 @@ def _is_number(value: Any) -> bool:
 class Key:
     """One configuration key (module docstring).
 
-    kind: ``text``, ``path`` (text, may be empty), ``names`` (list of distinct strings), ``number``,
-    ``integer``, ``choice``, ``vector3`` or ``vector6``. ``low``/``high`` bound numbers and integers,
+    kind: ``text``, ``path`` (text, may be empty), ``frame`` (a frame name, may be empty), ``names`` (list of
+    distinct strings), ``number``, ``integer``, ``choice``, ``vector3``, ``vector6`` or ``per_joint`` (one number
+    for every joint or one per joint; the config checks the count against the joints). ``low``/``high`` bound numbers and integers,
     ``low_open``/``high_open`` make an end exclusive; ``choices`` lists a choice's options.
     ``default`` None marks a required key.
     """
@@ -78,9 +84,11 @@ class Key:
             low, high = (float(self.low), float(self.high)) if self.kind == "number" else (self.low, self.high)
             return f"{kind} in {'(' if self.low_open else '['}{low}, {high}{')' if self.high_open else ']'}"
         return {"text": "a non-empty string", "path": "a path, or '' for none",
+                "frame": "a frame of the URDF fixed to its root link, or '' for the root link",
                 "names": "a non-empty list of distinct joint names", "choice": f"one of {', '.join(self.choices)}",
                 "vector3": "a list of 3 numbers",
-                "vector6": "a list of 6 numbers [ixx, iyy, izz, ixy, ixz, iyz]"}[self.kind]
+                "vector6": f"a list of 6 numbers [{', '.join(INERTIA_ORDER)}]",
+                "per_joint": "a list of 1 number (every joint) or one per joint"}[self.kind]
 
     @property
     def documented(self) -> str:
@@ -98,11 +106,13 @@ class Key:
         checks: dict[str, Callable[[Any], bool]] = {
             "text": lambda v: isinstance(v, str) and v.strip() != "",
             "path": lambda v: isinstance(v, str),
+            "frame": lambda v: isinstance(v, str),
             "names": lambda v: (isinstance(v, list) and len(v) > 0 and all(isinstance(x, str) and x for x in v)
                                 and len(set(v)) == len(v)),
             "choice": lambda v: v in self.choices,
             "vector3": lambda v: isinstance(v, list) and len(v) == 3 and all(_is_number(x) for x in v),
             "vector6": lambda v: isinstance(v, list) and len(v) == 6 and all(_is_number(x) for x in v),
+            "per_joint": lambda v: isinstance(v, list) and len(v) > 0 and all(_is_number(x) for x in v),
         }
         return checks[self.kind](value)
 
@@ -122,7 +132,8 @@ def _unit(low: float, high: float, **options: Any) -> dict[str, Any]:
 KEYS: tuple[Key, ...] = (
     _key("robot", "text", None, "robot name, written into models and reports"),
     _key("robot_model.urdf", "text", None,
-         "nominal model: URDF path, example-robot-data:panda / :ur5, or robot_description (the node takes the topic)", attr="urdf"),
+         "nominal model: URDF path, example-robot-data:panda / :ur5 / :ur10, or robot_description (the node takes "
+         "the topic; kvark's commands need a file: keep the file the model was trained with)", attr="urdf"),
     _key("robot_model.joint_names", "names", None,
          "estimated joints, in output order; others are locked; messages are matched by these names", attr="joint_names"),
     _key("robot_model.ee_frame", "text", None, "wrench reference frame (origin and, for wrench.frame end_effector, axes)", attr="ee_frame"),
@@ -132,7 +143,8 @@ KEYS: tuple[Key, ...] = (
     _key("robot_model.payload.com", "vector3", [0.0, 0.0, 0.0], "payload centre of mass in the flange frame, m",
          runtime=True, group="payload", attr="com"),
     _key("robot_model.payload.inertia", "vector6", [0.0] * 6,
-         "payload inertia about its CoM, kg m^2 (ixx iyy izz ixy ixz iyz)", runtime=True,
+         "payload inertia about its CoM in flange axes, kg m^2, in geometry_msgs/Inertia's and URDF's order (ixx "
+         "ixy ixz iyy iyz izz)", runtime=True,
          group="payload", attr="inertia"),
     _key("residual_model.model_dir", "text", None,
          "trained model directory written by kvark train (~/reload_model reloads it)", attr="model_dir"),
@@ -144,6 +156,13 @@ KEYS: tuple[Key, ...] = (
          "augmentation.yaml of kvark diagnose for kvark train; at estimation it must be the model directory's copy ('' = that copy)"),
     _key("observer", "choice", "kvark", "observer name (README, Observers)", choices=OBSERVER_NAMES),
     _key("wrench.frame", "choice", "base", "axes of the published wrench: base or end_effector (ee_frame)", runtime=True, choices=WRENCH_FRAMES),
+    _key("wrench.base_frame", "frame", "",
+         "frame_id and axes of the wrench for wrench.frame base: a frame fixed to the URDF's root link (UR: base, "
+         "turned 180° about z from base_link), '' = the root link; the reference point stays the ee_frame origin"),
+    _key("wrench.convention", "choice", "acting_on_robot",
+         "sign of the published wrench: acting_on_robot (the environment's wrench on the robot, τ_ext = Jᵀ F) or "
+         "applied_by_robot (its negative, as Franka's O_F_ext_hat_K); τ_ext keeps its sign", runtime=True,
+         choices=WRENCH_CONVENTIONS),
     _key("wrench.damping", "number", 0.05, "damping δ of the pseudo-inverse (paper v2 eq. 39)", runtime=True,
          **_unit(0.0, 10.0)),
     _key("wrench.prior_force", "number", 50.0, "N; scale of an unknown force: the wrench covariance carries its "
@@ -209,6 +228,10 @@ KEYS: tuple[Key, ...] = (
          "where τ_m comes from: effort_commands (Float64MultiArray; offline also JointState), "
          "effort_commands_joint_state (JointState effort on effort_commands), joint_states_effort "
          "(effort of joint_states, e.g. measured link-side torque)", choices=TORQUE_SOURCES),
+    _key("input.effort_scale", "per_joint", [1.0],
+         "τ_m = effort_scale · value + effort_offset per joint, applied to the values input.torque_source reads, "
+         "live and offline: N·m/A for a motor current in A (UR's joint_states effort), 1 for N·m"),
+    _key("input.effort_offset", "per_joint", [0.0], "N·m added after effort_scale (see it)"),
     _key("input.joint_states_topic", "text", "joint_states",
          "sensor_msgs/JointState topic (q, q̇ and, for joint_states_effort, τ_m); bags match it with or without "
          "the leading /"),

@@ -46,7 +46,8 @@ def _annotation(key: Key) -> str:
     """The type of a key's value in its settings class, as source (lists become tuples)."""
     if key.kind == "choice" and key.name not in OPEN_CHOICES:
         return f"Literal[{', '.join(json.dumps(choice) for choice in key.choices)}]"
-    return {"number": "float", "integer": "int", "names": "tuple[str, ...]", "vector3": "tuple[float, float, float]",
+    return {"number": "float", "integer": "int", "names": "tuple[str, ...]", "per_joint": "tuple[float, ...]",
+            "vector3": "tuple[float, float, float]",
             "vector6": "tuple[float, float, float, float, float, float]"}.get(key.kind, "str")
 
 

@@ -21,6 +21,14 @@ class WrenchSettings:
     frame: Literal["base", "end_effector"] = "base"
     """axes of the published wrench: base or end_effector (ee_frame). Allowed: one of base, end_effector. Can be changed
     while the node runs."""
+    base_frame: str = ""
+    """frame_id and axes of the wrench for wrench.frame base: a frame fixed to the URDF's root link (UR: base, turned
+    180° about z from base_link), '' = the root link; the reference point stays the ee_frame origin. Allowed: a frame of
+    the URDF fixed to its root link, or '' for the root link."""
+    convention: Literal["acting_on_robot", "applied_by_robot"] = "acting_on_robot"
+    """sign of the published wrench: acting_on_robot (the environment's wrench on the robot, τ_ext = Jᵀ F) or
+    applied_by_robot (its negative, as Franka's O_F_ext_hat_K); τ_ext keeps its sign. Allowed: one of acting_on_robot,
+    applied_by_robot. Can be changed while the node runs."""
     damping: float = 0.05
     """damping δ of the pseudo-inverse (paper v2 eq. 39). Allowed: a number in [0.0, 10.0]. Can be changed while the
     node runs."""
@@ -106,6 +114,12 @@ class InputSettings:
     """where τ_m comes from: effort_commands (Float64MultiArray; offline also JointState), effort_commands_joint_state
     (JointState effort on effort_commands), joint_states_effort (effort of joint_states, e.g. measured link-side
     torque). Allowed: one of effort_commands, effort_commands_joint_state, joint_states_effort."""
+    effort_scale: tuple[float, ...] = (1.0,)
+    """τ_m = effort_scale · value + effort_offset per joint, applied to the values input.torque_source reads, live and
+    offline: N·m/A for a motor current in A (UR's joint_states effort), 1 for N·m. Allowed: a list of 1 number (every
+    joint) or one per joint."""
+    effort_offset: tuple[float, ...] = (0.0,)
+    """N·m added after effort_scale (see it). Allowed: a list of 1 number (every joint) or one per joint."""
     joint_states_topic: str = "joint_states"
     """sensor_msgs/JointState topic (q, q̇ and, for joint_states_effort, τ_m); bags match it with or without the leading
     /. Allowed: a non-empty string."""
@@ -179,8 +193,8 @@ class EstimatorConfig:
     robot: str
     """robot name, written into models and reports. Allowed: a non-empty string."""
     urdf: str
-    """nominal model: URDF path, example-robot-data:panda / :ur5, or robot_description (the node takes the topic).
-    Allowed: a non-empty string."""
+    """nominal model: URDF path, example-robot-data:panda / :ur5 / :ur10, or robot_description (the node takes the
+    topic; kvark's commands need a file: keep the file the model was trained with). Allowed: a non-empty string."""
     joint_names: tuple[str, ...]
     """estimated joints, in output order; others are locked; messages are matched by these names. Allowed: a non-empty
     list of distinct joint names."""

@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from kvark_ros.core.config import ConfigError
+from kvark_ros.core.config import ConfigError, EstimatorConfig
 
 
 @dataclass(frozen=True)
@@ -28,6 +28,36 @@ class EstimatorInputs:
     def take(self, rows: np.ndarray) -> EstimatorInputs:
         """The samples at ``rows`` (indices or a mask), the rest of the description kept."""
         return replace(self, stamp=self.stamp[rows], q=self.q[rows], qd=self.qd[rows], tau_m=self.tau_m[rows])
+
+
+@dataclass(frozen=True, eq=False)
+class EffortCalibration:
+    """The rule that turns the values ``input.torque_source`` reads into τ_m (N·m): ``τ_m = scale ⊙ value + offset``
+    per joint (``input.effort_scale``, ``input.effort_offset``; a motor current in A times N·m/A), applied by the
+    node to every message and by every command to a bag's samples, so both see the same τ_m. scale, offset: (n,)."""
+
+    scale: np.ndarray
+    offset: np.ndarray
+
+    @classmethod
+    def from_config(cls, config: EstimatorConfig) -> EffortCalibration:
+        """The config's keys, a single value repeated for every joint."""
+        n = config.n_joints
+        return cls(np.broadcast_to(np.asarray(config.input.effort_scale, dtype=float), (n,)).copy(),
+                   np.broadcast_to(np.asarray(config.input.effort_offset, dtype=float), (n,)).copy())
+
+    @property
+    def identity(self) -> bool:
+        """Whether τ_m is the value as read (scale 1, offset 0): nothing to apply."""
+        return bool((self.scale == 1.0).all() and (self.offset == 0.0).all())
+
+    def apply(self, values: np.ndarray) -> np.ndarray:
+        """τ_m of ``values``: (n,) or (T, n), in the joints' order."""
+        return values * self.scale + self.offset
+
+    def to_inputs(self, inputs: EstimatorInputs) -> EstimatorInputs:
+        """``inputs`` with τ_m through ``apply`` (the same object when ``identity``)."""
+        return inputs if self.identity else replace(inputs, tau_m=self.apply(inputs.tau_m))
 
 
 def trimmed_rows(stamp: np.ndarray, start: float, end: float) -> np.ndarray:

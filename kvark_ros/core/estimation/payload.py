@@ -14,24 +14,40 @@ if TYPE_CHECKING:
     import pinocchio as pin
 
 
+# The order a user writes an inertia's six values in: geometry_msgs/Inertia's and URDF's.
+MESSAGE_ORDER = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+Inertia6 = tuple[float, float, float, float, float, float]
+
+
 @dataclass(frozen=True)
 class Payload:
     """Rigid payload or tool fixed to the flange.
 
-    mass: kg; com: (3,) m in the flange frame; inertia: (6,) kg·m² about the CoM,
-    flange axes, ordered ``[ixx, iyy, izz, ixy, ixz, iyz]``.
+    mass: kg; com: (3,) m in the flange frame; inertia: (6,) kg·m² about the CoM, flange axes, held as
+    ``[ixx, iyy, izz, ixy, ixz, iyz]`` (diagonal first, as the plant files write it); the config takes
+    ``MESSAGE_ORDER`` (``from_message_order``).
     """
 
     mass: float
     com: tuple[float, float, float] = (0.0, 0.0, 0.0)
     inertia: tuple[float, float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
+    @classmethod
+    def from_message_order(cls, mass: float, com: tuple[float, float, float],
+                           inertia: tuple[float, ...]) -> Payload:
+        """The payload of an inertia given in ``MESSAGE_ORDER`` (ixx ixy ixz iyy iyz izz)."""
+        ixx, ixy, ixz, iyy, iyz, izz = (float(v) for v in inertia)
+        return cls(float(mass), com, (ixx, iyy, izz, ixy, ixz, iyz))
+
+    def rotational_inertia(self) -> np.ndarray:
+        """(3, 3) inertia about the centre of mass, flange axes, kg·m²."""
+        ixx, iyy, izz, ixy, ixz, iyz = self.inertia
+        return np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
+
     def to_pinocchio(self) -> "pin.Inertia":
         """Spatial inertia in the flange frame."""
         import pinocchio as pin   # only where the payload enters a model: loading a config needs no pinocchio
-        ixx, iyy, izz, ixy, ixz, iyz = self.inertia
-        rot_inertia = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
-        return pin.Inertia(float(self.mass), np.asarray(self.com, dtype=float), rot_inertia)
+        return pin.Inertia(float(self.mass), np.asarray(self.com, dtype=float), self.rotational_inertia())
 
 
 def inertia_problem(parameters: np.ndarray, tolerance: float = 1e-6) -> str | None:
@@ -51,3 +67,24 @@ def inertia_problem(parameters: np.ndarray, tolerance: float = 1e-6) -> str | No
     if principal[2] > principal[0] + principal[1] + tolerance:
         return f"principal moments {np.round(principal, 5).tolist()} violate the triangle inequality"
     return None
+
+
+def _is_rotational_inertia(matrix: np.ndarray, tolerance: float = 1e-9) -> bool:
+    """Whether (3, 3) ``matrix`` is an inertia about a centre of mass: positive semi-definite, principal moments
+    obeying the triangle inequality (to ``tolerance`` kg·m²)."""
+    principal = np.linalg.eigvalsh(matrix)
+    return bool(principal[0] >= -tolerance and principal[2] <= principal[0] + principal[1] + tolerance)
+
+
+def old_order_problem(inertia: tuple[float, ...]) -> str | None:
+    """Why six inertia values look written in the order this key had before (ixx iyy izz ixy ixz iyz): they are an
+    inertia in that order and not in ``MESSAGE_ORDER``; the same values in ``MESSAGE_ORDER`` to write instead.
+    None when the values are an inertia in ``MESSAGE_ORDER`` or in neither order (the physical check names that)."""
+    in_order = Payload.from_message_order(1.0, (0.0, 0.0, 0.0), inertia).rotational_inertia()
+    ixx, iyy, izz, ixy, ixz, iyz = (float(v) for v in inertia)
+    as_before = Payload(1.0, inertia=(ixx, iyy, izz, ixy, ixz, iyz)).rotational_inertia()
+    if _is_rotational_inertia(in_order) or not _is_rotational_inertia(as_before):
+        return None
+    rewritten = ", ".join(f"{v:g}" for v in (ixx, ixy, ixz, iyy, iyz, izz))
+    return (f"is ordered {' '.join(MESSAGE_ORDER)} (geometry_msgs/Inertia, URDF); {list(inertia)} is an inertia "
+            f"only in the former order ixx iyy izz ixy ixz iyz: write [{rewritten}]")

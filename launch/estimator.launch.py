@@ -4,63 +4,44 @@
                                               [joint_states:=TOPIC] [effort_commands:=TOPIC]
 
 config         the estimator's parameter file (default: share/kvark_ros/config/panda.yaml); the same
-               YAML that ``kvark train`` / ``kvark replay`` read (``kvark_estimator: ros__parameters:``).
+               YAML that ``kvark train`` / ``kvark replay`` read (``kvark_estimator: ros__parameters:`` or
+               ``/**/kvark_estimator: ros__parameters:``).
 namespace      namespace of the node; its outputs are then /NS/kvark_estimator/..., and its relative
                inputs NS/joint_states, NS/effort_commands, NS/robot_description.
 torque_source  input.torque_source: effort_commands (Float64MultiArray), effort_commands_joint_state
                (JointState effort) or joint_states_effort (the effort field of joint_states).
 joint_states, effort_commands
                input.joint_states_topic and input.effort_commands_topic, e.g.
-               joint_states:=/franka/joint_states or effort_commands:=/forward_effort_controller/commands.
+               joint_states:=franka/joint_states or effort_commands:=/forward_effort_controller/commands.
 
 The last three default to '' (the config file's value).
 
-The file's ``kvark_estimator.ros__parameters`` are passed to the node as a parameter dictionary
-rather than as the file itself: a file keyed ``kvark_estimator`` only matches a node in the root
-namespace, while a dictionary applies under any ``namespace``. Relative ``residual_model.model_dir``,
-``robot_model.urdf`` and ``model_augmentation`` paths are resolved as ``kvark`` resolves them:
-against the folder holding the config file.
+The file's parameters are passed to the node as a parameter dictionary
+(``kvark_ros.core.config.launch_parameters``) rather than as the file itself, so they apply under any
+``namespace`` whatever the file's key; relative ``residual_model.model_dir``, ``robot_model.urdf`` and
+``model_augmentation`` paths are resolved as ``kvark`` resolves them: against the folder holding the file.
 """
 import os
 
-import yaml
 from ament_index_python.packages import get_package_share_directory
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
-NODE_NAME = "kvark_estimator"
-PATH_KEYS = (("residual_model", "model_dir"), ("robot_model", "urdf"), (None, "model_augmentation"))
-NOT_PATHS = ("robot_description", "<", "example-robot-data:")      # robot_model.urdf values that name no file
+from kvark_ros.core.config import NODE_NAME, launch_parameters
+
 # launch argument -> key of the config's input group it overrides when not ''
 INPUT_ARGUMENTS = (("torque_source", "torque_source"), ("joint_states", "joint_states_topic"),
                    ("effort_commands", "effort_commands_topic"))
 
 
-def estimator_parameters(config_path: str) -> dict:
-    """``kvark_estimator.ros__parameters`` of the config file, relative paths made absolute."""
-    with open(config_path) as stream:
-        document = yaml.safe_load(stream)
-    try:
-        parameters = document[NODE_NAME]["ros__parameters"]
-    except (TypeError, KeyError) as exc:
-        raise RuntimeError(f"{config_path}: expected a top-level '{NODE_NAME}: ros__parameters:' mapping") from exc
-    folder = os.path.dirname(os.path.abspath(config_path))
-    for group, key in PATH_KEYS:
-        holder = parameters if group is None else parameters.get(group) or {}
-        value = holder.get(key)
-        if isinstance(value, str) and value and not os.path.isabs(value) and not value.startswith(NOT_PATHS):
-            holder[key] = os.path.normpath(os.path.join(folder, value))
-    return parameters
-
-
 def _estimator_node(context, *args, **kwargs):
-    parameters = estimator_parameters(LaunchConfiguration("config").perform(context))
+    parameters = launch_parameters(LaunchConfiguration("config").perform(context))
     for argument, key in INPUT_ARGUMENTS:
         value = LaunchConfiguration(argument).perform(context)
         if value:
-            parameters.setdefault("input", {})[key] = value
+            parameters[f"input.{key}"] = value
     return [Node(package="kvark_ros", executable="estimator_node", name=NODE_NAME,
                  namespace=LaunchConfiguration("namespace"), parameters=[parameters],
                  output="screen", emulate_tty=True)]

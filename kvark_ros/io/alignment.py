@@ -13,7 +13,9 @@ next state's, and a state without one takes the last command before its stamp. F
 message by message cost more than the rest of a replay; test/io/test_bulk_pairing.py checks the two
 agree. Stamps that are not finite (which bags cannot hold) still go through the pairer.
 
-What the commands read from a bag (``read_checked``) is then checked against the physics of the config's URDF
+What the commands read from a bag (``read_checked``) has τ_m through the config's ``input.effort_scale`` and
+``input.effort_offset`` (``core.estimation.inputs.EffortCalibration``: the rule the node applies to every message,
+so a UR's motor current in A becomes N·m alike live and offline), and is then checked against the physics of the config's URDF
 as ``kvark import`` checks a log's rows (``core.estimation.sample_limits``: finite, within the limits and their
 margins, no isolated stamp, no position jump): a sample beyond them is skipped and counted, with one line per
 reason naming the bag, the topic, the time and the joint; a bag where most samples fail is refused with one
@@ -28,7 +30,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from kvark_ros.core.config import EstimatorConfig
-from kvark_ros.core.estimation.inputs import EstimatorInputs, select_samples
+from kvark_ros.core.estimation.inputs import EffortCalibration, EstimatorInputs, select_samples
 from kvark_ros.core.estimation.pairing import RESET, Sample, StreamPairer
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.estimation.sample_limits import Drop, RowCheck, SampleLimits, check_rows, counted
@@ -43,7 +45,7 @@ MIN_KEPT_SHARE = 0.5     # a bag with fewer samples within the physics is refuse
 FIXES = {"position": "check that the config's robot_model (URDF, joint_names) is this robot's and q is in rad",
          "velocity": "check that the config's joint_names are this robot's and q̇ is in rad/s",
          "torque": "check input.torque_source and that the torque is in N·m (a motor current needs its torque "
-                   "constant: kvark import --scale)",
+                   "constant: input.effort_scale, or kvark import's effort scale)",
          "jump": "check that the config's joint_names are this robot's, in the bag's order",
          "far": "check the bag's header stamps", "non-finite": "re-record or re-import the bag"}
 
@@ -161,7 +163,8 @@ def read_checked(bag: str | Path, config: EstimatorConfig, limits: SampleLimits 
     ``MIN_KEPT_SHARE`` of them are within."""
     topics = TopicNames.from_config(config.input)
     run = read_run(bag, config.joint_names, topics)
-    inputs = estimator_inputs(run, config.input.command_max_age, str(bag), config.input.torque_source, topics)
+    inputs = EffortCalibration.from_config(config).to_inputs(
+        estimator_inputs(run, config.input.command_max_age, str(bag), config.input.torque_source, topics))
     if limits is None:
         limits = SampleLimits.from_robot(RobotModel(config.urdf, config.joint_names, config.ee_frame))
     check = check_rows(inputs.stamp, inputs.q, inputs.qd, inputs.tau_m, limits)

@@ -8,13 +8,14 @@ new estimator in between two samples. The worker shares the interpreter with the
 from __future__ import annotations
 
 import threading
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from rclpy.task import Future
 
 from kvark_ros.core.config import EstimatorConfig
 from kvark_ros.core.estimation.estimator import Estimator
+from kvark_ros.core.estimation.wrench_output import WrenchOutput
 
 if TYPE_CHECKING:
     from rclpy.executors import Executor
@@ -25,10 +26,19 @@ SWITCH_INTERVAL = 0.0002
 BUILD_ERRORS = (ValueError, OSError, RuntimeError, KeyError, TypeError, np.linalg.LinAlgError)
 
 
-def build(config: EstimatorConfig, urdf_xml: str | None) -> Estimator | str:
-    """A new estimator of ``config`` (``urdf_xml``: the robot_description's URDF), or the problem as text."""
+class Built(NamedTuple):
+    """A new estimator and the frames, axes and sign its wrench is published in."""
+
+    estimator: Estimator
+    output: WrenchOutput
+
+
+def build(config: EstimatorConfig, urdf_xml: str | None) -> Built | str:
+    """A new estimator of ``config`` (``urdf_xml``: the robot_description's URDF) and its wrench output, or the
+    problem as text."""
     try:
-        return Estimator.from_config(config, urdf=urdf_xml)
+        estimator = Estimator.from_config(config, urdf=urdf_xml)
+        return Built(estimator, WrenchOutput(estimator.robot, config))
     except BUILD_ERRORS as exc:
         return str(exc) or type(exc).__name__
 

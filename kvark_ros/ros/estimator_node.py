@@ -5,38 +5,26 @@ Run ``ros2 launch kvark_ros estimator.launch.py`` (or ``ros2 run kvark_ros estim
 paired with commands by ``kvark_ros.core.estimation.pairing`` and every number comes from
 ``kvark_ros.core.estimation.estimator.Estimator.step``, the same code ``kvark replay`` runs over a bag.
 
-Topics, services and parameters: the README's tables. In: ``input.joint_states_topic``
-(``joint_states``), ``input.effort_commands_topic`` (``effort_commands``: Float64MultiArray, or
-JointState with ``input.torque_source: effort_commands_joint_state``), ``robot_description``; out:
-the estimate topics of ``kvark_ros.ros.publishers`` (τ_ext, the wrench in base and ee_frame axes,
-the uncertainty, the contact and collision flags; QoS ``output.qos``) and ``/diagnostics``;
-services ``~/reset`` (also clears the tare), ``~/reload_model`` and ``~/tare``. ``/diagnostics`` has
-the statuses model, input, filter, wrench (unobservable wrench directions near singular poses) and tare.
+Topics, services and parameters: docs/ros.md. In: ``input.joint_states_topic``, ``input.effort_commands_topic``
+(Float64MultiArray, or JointState with ``effort_commands_joint_state``), ``robot_description``; out: the stamped
+estimate topics of ``kvark_ros.ros.publishers`` (QoS ``output.qos``) and ``/diagnostics`` (model, input, filter,
+wrench, tare); services ``~/reset`` (also clears the tare), ``~/reload_model`` and ``~/tare`` (starts averaging
+τ_ext at rest, ``core.estimation.tare``, and returns at once; its outcome is on ``/diagnostics``).
 
-``~/tare`` starts averaging τ_ext over ``tare.duration`` s of sample time at rest
-(``kvark_ros.core.estimation.tare``) and returns at once: a callback that waited for the samples would hold
-the services for a second. It refuses while the robot moves; the outcome (averaging, active with the offset
-per joint, or aborted and why) is on ``/diagnostics`` (``…: tare``).
+Pairing (``core.estimation.pairing``): each message is ordered by when it was published (its message info's
+source timestamp, else the receive time), so an executor that falls behind still pairs command k with state k;
+stamped commands by their header stamps. With ``joint_states_effort`` the effort of ``joint_states`` is τ_m and
+nothing is paired. A zero stamp (a driver that never fills it) becomes the receive time, except the first one
+after start or a reset (simulated bags start at 0 s).
 
-Pairing: see ``kvark_ros.core.estimation.pairing``. Each message is ordered by when it was published (its
-message info's source timestamp; the receive time where the middleware gives none), so an executor
-that falls behind and takes joint state k+1 before command k still pairs command k with state k.
-Stamped commands (``effort_commands_joint_state``) are ordered by their header stamps. With
-``torque_source: joint_states_effort`` the effort field of ``joint_states`` is τ_m (drivers that
-report the full measured joint torque, e.g. franka_ros2) and nothing is paired. A joint state with
-a zero stamp (a driver that never fills it) is stamped with its receive time on the node clock,
-except the first one after start or a reset (simulated bags start at 0 s).
+Parameters (``kvark_ros.ros.parameters``): relative paths resolve against the folder of the ``--params-file``
+that set them, as ``kvark`` resolves them against the config file's, else against the package's config folder.
+τ_m read from a message goes through ``input.effort_scale``/``effort_offset`` (``core.estimation.inputs``, the
+rule every command applies to a bag); the wrench through ``core.estimation.wrench_output`` (frame, sign). A
+run-time payload goes through ``Estimator.configure`` between two samples; a non-physical one is refused.
 
-Run-time payload: ``robot_model.payload.*`` changed by ``ros2 param set`` go through
-``Estimator.configure`` (``Estimator.set_payload``) between two samples, under ``lock``; the filter
-continues. A non-physical payload is refused by the on-set callback with the reason.
-
-Robustness: every rejected message is counted per reason and summarised on ``/diagnostics``;
-nothing is logged per message, nothing non-finite is published (the Estimator never returns a
-non-finite estimate).
-
-Parameters: the config keys (``kvark_ros.ros.parameters``); relative paths resolve against the
-package's config folder (``parameters.config_folder``: no ament environment needed).
+Robustness: every rejected message is counted per reason on ``/diagnostics``; nothing is logged per message,
+nothing non-finite is published. Lost input is measured from gaps in the joint-state stamps.
 
 Threads (``kvark_ros.ros.input_loop``): ``main`` takes the inputs (raw CDR, decoded by layout:
 ``kvark_ros.io.cdr_messages``) on a wait loop of its own, every ready message at each wake, in publication
@@ -45,10 +33,6 @@ order, and estimates and publishes (serialised) on the same thread. Services, pa
 ``lock``: between two batches of samples. ``~/reload_model`` and a new ``robot_description`` build the
 estimator on a worker thread, then swap it in, continuing the old filter's state when joints and observer
 match (reloading the same model changes no output).
-
-Lost input is measured: gaps in the joint-state stamps against the measured rate are counted and shown on
-``/diagnostics`` (WARN above ``diagnostics.max_loss``). The uncertainty topics are published only while
-someone subscribes (checked at every ``/diagnostics`` tick and every 100 estimates).
 """
 from __future__ import annotations
 
@@ -56,6 +40,8 @@ import math
 import sys
 import threading
 from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -74,12 +60,14 @@ from std_srvs.srv import Trigger
 
 from kvark_ros.core.config import NODE_NAME, ROBOT_DESCRIPTION, ConfigError
 from kvark_ros.core.estimation.estimator import Estimate, Estimator
+from kvark_ros.core.estimation.inputs import EffortCalibration
 from kvark_ros.core.estimation.pairing import RESET, JointColumns, Reject, Sample, StreamPairer, stamp_seconds
 from kvark_ros.core.estimation.tare import TareError
+from kvark_ros.core.estimation.wrench_output import WrenchOutput
 from kvark_ros.io.cdr_messages import Decoder
 from kvark_ros.io.common import FLOAT64_ARRAY, JOINT_STATE
 from kvark_ros.ros import input_loop, parameters
-from kvark_ros.ros.builds import SWITCH_INTERVAL, build, build_off_path
+from kvark_ros.ros.builds import SWITCH_INTERVAL, Built, build, build_off_path
 from kvark_ros.ros.diagnostics import NOT_READY, SERVICE_RESET, StatusBuilder, Windows
 from kvark_ros.ros.input_loop import InputGroup, locked, publication_ns
 from kvark_ros.ros.publishers import SUBSCRIBER_CHECK, EstimatePublishers, Stamp, qos_profile
@@ -96,23 +84,27 @@ class Drop(Reject):
 
 
 class EstimatorNode(Node):
-    """The ``kvark_estimator`` node (module docstring). ``kwargs`` go to ``rclpy.node.Node``."""
+    """The ``kvark_estimator`` node (module docstring). ``parameter_files``: the ``--params-file`` files of its command
+    line (relative paths resolve against the one that set them); ``kwargs`` go to ``rclpy.node.Node``."""
 
-    def __init__(self, **kwargs: Any) -> None:
+    def __init__(self, parameter_files: Sequence[Path] = (), **kwargs: Any) -> None:
         super().__init__(NODE_NAME, **kwargs)
         self.lock = threading.Lock()                 # held by the input thread per batch, by the others per change
         parameters.declare(self)
-        self._config = config = parameters.read_config(self)
+        self._parameter_files = tuple(parameter_files)
+        self._config = config = parameters.read_config(self, self._parameter_files)
         self._torque_source = config.input.torque_source
+        effort = EffortCalibration.from_config(config)
+        self._effort = None if effort.identity else effort      # τ_m = scale · value + offset, if not the value
         self._n = config.n_joints
         self._columns = JointColumns(config.joint_names)
         self._counts: Counter[str] = Counter()      # the node's and the pairing's reasons
         self._pairer = StreamPairer(config.input.command_max_age, config.input.max_gap, counts=self._counts)
         self._stamped_commands = self._torque_source == "effort_commands_joint_state"
         self._estimator: Estimator | None = None
+        self._wrench_output: WrenchOutput | None = None   # the estimator's wrench frames, axes and sign
         self._urdf_xml: str | None = None            # newest robot_description received
         self._urdf_in_use = ""
-        self._base_frame = "base"
         self._model_problem = "model not loaded yet"
         self._reload_problem: str | None = None
         self._told_about_description = False
@@ -124,7 +116,7 @@ class EstimatorNode(Node):
         self._statuses = StatusBuilder(self.get_fully_qualified_name(), config.robot)
 
         sensor_qos = qos_profile("sensor_data", config.input.queue_depth)
-        self._outputs = EstimatePublishers(self, config.joint_names, config.ee_frame,
+        self._outputs = EstimatePublishers(self, config.joint_names,
                                            qos_profile(config.output.qos, config.input.queue_depth))
         self._pub_diagnostics = self.create_publisher(DiagnosticArray, "/diagnostics", QoSProfile(depth=10))
         # The inputs arrive as CDR bytes (module docstring: Threads), with no QoS event handlers (input_loop).
@@ -175,10 +167,11 @@ class EstimatorNode(Node):
         names = [p.name for p in changed if p.name in parameters.RUNTIME_KEYS]
         if not names:
             return
-        config = parameters.read_config(self)       # read-only keys cannot differ: the on-set callback refused them
+        config = parameters.read_config(self, self._parameter_files)   # read-only keys: refused by the on-set callback
         previous, self._config = self._config, config
         if self._estimator is not None:
             self._estimator.configure(config)
+            self._wrench_output.configure(config)
         self._pairer.command_max_age, self._pairer.max_gap = config.input.command_max_age, config.input.max_gap
         if config.diagnostics.period != previous.diagnostics.period:
             self.destroy_timer(self._timer)
@@ -187,11 +180,12 @@ class EstimatorNode(Node):
             f"{n}={self.get_parameter(n).value}" for n in names))
 
     @locked
-    def _swap_in(self, built: Estimator | str, urdf_xml: str | None) -> str | None:
+    def _swap_in(self, new: Built | str, urdf_xml: str | None) -> str | None:
         """Put a built estimator in use between two samples, continuing the old one's filter state where joints
-        and observer match; ``built`` a problem: return it (the old estimator stays)."""
-        if isinstance(built, str):
-            return built
+        and observer match; ``new`` a problem: return it (the old estimator stays)."""
+        if isinstance(new, str):
+            return new
+        built, output = new
         old = self._estimator
         if old is not None:
             self._archived.update(old.counts)
@@ -201,9 +195,9 @@ class EstimatorNode(Node):
                 self._pairer.reset()              # another observer or other joints: start over
         if built.config != self._config:
             built.configure(self._config)         # run-time parameters set while it was being built
-        self._estimator = built
+            output.configure(self._config)
+        self._estimator, self._wrench_output = built, output
         self._urdf_in_use = "robot_description topic" if urdf_xml is not None else self._config.urdf
-        self._base_frame = built.robot.root_link
         self._model_problem = ""
         self._reload_problem = None
         return None
@@ -263,6 +257,8 @@ class EstimatorNode(Node):
         if self._torque_source == "joint_states_effort":
             effort = numbers["effort"]
             tau_m = effort[index] if len(effort) == count else None
+            if self._effort is not None and tau_m is not None:
+                tau_m = self._effort.apply(tau_m)
             self._estimate_all(self._pairer.stamped_state(Sample(stamp, q, qd, tau_m, tag)))
         else:
             key = self._order_key(info, stamp)
@@ -287,6 +283,8 @@ class EstimatorNode(Node):
         else:
             self._counts[Drop.BAD_COMMAND] += 1
             return
+        if self._effort is not None:
+            tau_m = self._effort.apply(tau_m)
         self._estimate_all(self._pairer.command(self._order_key(info, None), tau_m))
 
     def _command_state(self, raw: bytes, info: dict) -> None:
@@ -298,7 +296,8 @@ class EstimatorNode(Node):
             self._counts[Drop.BAD_COMMAND] += 1
             return
         key = self._order_key(info, stamp_seconds(int(numbers["sec"][0]), int(numbers["nanosec"][0])))
-        self._estimate_all(self._pairer.command(key, numbers["effort"][index]))
+        tau_m = numbers["effort"][index]
+        self._estimate_all(self._pairer.command(key, tau_m if self._effort is None else self._effort.apply(tau_m)))
 
     async def _on_robot_description(self, msg: String) -> None:
         xml = msg.data
@@ -326,7 +325,7 @@ class EstimatorNode(Node):
             else:
                 estimate = self._estimator.step(sample.stamp, sample.q, sample.qd, sample.tau_m)
                 if estimate is not None:
-                    self._outputs.publish(estimate, sample.tag, self._base_frame, self._config.ee_frame)
+                    self._outputs.publish(estimate, sample.tag, self._wrench_output)
                     self._last = estimate
 
     @locked
@@ -417,7 +416,7 @@ def main(args: list[str] | None = None) -> int:
     """``ros2 run kvark_ros estimator_node``: spin the node until Ctrl-C or shutdown."""
     rclpy.init(args=args)
     try:
-        node = EstimatorNode()
+        node = EstimatorNode(parameters.parameter_files(sys.argv if args is None else args))
     except (ConfigError, ParameterException) as exc:
         print(f"[{NODE_NAME}] error: {exc}", file=sys.stderr)
         rclpy.try_shutdown()

@@ -36,7 +36,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from kvark_ros.core.config import NODE_NAME, EstimatorConfig, load_config
+from kvark_ros.core.config import NODE_NAME, EstimatorConfig, file_parameters, load_config
 from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.core.estimation.pairing import stamp_seconds
@@ -46,7 +46,7 @@ from kvark_ros.io.cdr_messages import Decoder
 from kvark_ros.io.common import JOINT_STATE
 from kvark_ros.ros.input_loop import InputGroup, InputLoop, ServiceThread
 from kvark_ros.ros.node_process import Callgrind, Usage, joined, local_domain, spinning, start_node, stop_node
-from kvark_ros.ros.player import BagPlayer, Recording, playback_rate, read_recording
+from kvark_ros.ros.player import BagPlayer, Recording, input_recording, playback_rate
 from kvark_ros.tools.replay import run_observer
 
 if TYPE_CHECKING:
@@ -105,14 +105,20 @@ class Recorder(Node):
 
 def node_parameters_file(config_path: str | os.PathLike, config: EstimatorConfig, model_dir: str,
                          folder: Path) -> Path:
-    """The config file's parameters with absolute paths and ``model_dir``, as a node parameter file in ``folder``."""
-    document = yaml.safe_load(Path(config_path).read_text())
-    parameters = document[NODE_NAME]["ros__parameters"]
-    parameters.setdefault("residual_model", {})["model_dir"] = str(Path(model_dir).resolve())
-    parameters.setdefault("robot_model", {})["urdf"] = config.urdf
-    parameters["model_augmentation"] = config.model_augmentation
+    """The config file's parameters (every key of it that applies to the node: ``file_parameters``) with absolute
+    paths and ``model_dir``, as a node parameter file in ``folder``."""
+    flat = file_parameters(yaml.safe_load(Path(config_path).read_text()), str(config_path))
+    flat.update({"residual_model.model_dir": str(Path(model_dir).resolve()), "robot_model.urdf": config.urdf,
+                 "model_augmentation": config.model_augmentation})
+    parameters: dict = {}
+    for name, value in flat.items():             # dotted names nested again, as the YAML groups them
+        *groups, key = name.split(".")
+        holder = parameters
+        for group in groups:
+            holder = holder.setdefault(group, {})
+        holder[key] = value
     path = folder / "parameters.yaml"
-    write_text_atomically(path, yaml.safe_dump(document, sort_keys=False))
+    write_text_atomically(path, yaml.safe_dump({NODE_NAME: {"ros__parameters": parameters}}, sort_keys=False))
     return path
 
 
@@ -124,7 +130,7 @@ def check_node(config_path: str, bag: str, model_dir: str | None = None, rate: f
     files into this folder (give a ``rate`` the node keeps up with under valgrind, e.g. 0.1)."""
     config = load_config(config_path)
     model_dir = model_dir or config.model_dir
-    recording = read_recording(bag, config.input.joint_states_topic, config.input.effort_commands_topic)
+    recording = input_recording(bag, config.input)
     domain = domain_id if domain_id is not None else int(np.random.default_rng().integers(*DOMAIN_RANGE))
     counter = None if callgrind is None else Callgrind(Path(callgrind).resolve())
     with tempfile.TemporaryDirectory(prefix="kvark_node_check_") as scratch:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import array
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,7 @@ from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from kvark_ros.core.config import ConfigError, EstimatorConfig, config_from_parameters, with_resolved_paths
+from kvark_ros.core.config import ConfigError, EstimatorConfig, config_from_parameters, resolved_against_files
 from kvark_ros.core.config_schema import KEYS, KEYS_BY_NAME, Key
 from kvark_ros.core.estimation.estimator import payload_problem
 
@@ -28,7 +29,7 @@ PAYLOAD_PREFIX = "robot_model.payload."
 PARAMETERS: dict[str, Key] = KEYS_BY_NAME
 RUNTIME_KEYS = tuple(key.name for key in KEYS if key.runtime)
 _ROS_TYPES = {"number": T.DOUBLE, "integer": T.INTEGER, "names": T.STRING_ARRAY, "vector3": T.DOUBLE_ARRAY,
-              "vector6": T.DOUBLE_ARRAY}
+              "vector6": T.DOUBLE_ARRAY, "per_joint": T.DOUBLE_ARRAY}
 
 
 def _plain(value: Any) -> Any:
@@ -88,11 +89,26 @@ def values(node: Node) -> dict[str, Any]:
     return found
 
 
-def read_config(node: Node) -> EstimatorConfig:
-    """The validated config of the node's parameters, relative paths resolved against ``config_folder()``."""
+def parameter_files(arguments: Sequence[str]) -> list[Path]:
+    """The ``--params-file`` files of a node's command line (``ros2 run … --ros-args --params-file FILE``), in order:
+    the files rcl read its parameters from."""
+    files, inside = [], False
+    for position, argument in enumerate(arguments):
+        if argument == "--ros-args":
+            inside = True
+        elif argument == "--":
+            inside = False
+        elif inside and argument == "--params-file" and position + 1 < len(arguments):
+            files.append(Path(arguments[position + 1]))
+    return files
+
+
+def read_config(node: Node, files: Sequence[Path] = ()) -> EstimatorConfig:
+    """The validated config of the node's parameters, relative paths resolved as ``kvark`` resolves them: against
+    the folder of the parameter file (of ``files``) that set them, else against ``config_folder()`` (parameters
+    without a file: a launch file's dictionary, which resolved its own, or the defaults)."""
     config = config_from_parameters(values(node), f"parameters of {node.get_fully_qualified_name()}")
-    folder = config_folder()
-    return config if folder is None else with_resolved_paths(config, folder)
+    return resolved_against_files(config, files, node.get_fully_qualified_name(), config_folder())
 
 
 def check_update(node: Node, parameters: list[Parameter]) -> SetParametersResult:

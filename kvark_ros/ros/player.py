@@ -1,8 +1,9 @@
 """``kvark play BAG``: publish a bag's joint states and effort commands to ROS 2, at real time or a set rate.
 
 For users without rosbag2 (the ROS 2 wheels have none) and for the node's tests: the config's
-``input.joint_states_topic`` and ``input.effort_commands_topic`` are read from the bag (as ``kvark replay``
-reads them) and published under the same relative names, so ``--ros-args -r joint_states:=/arm/joint_states``
+``input.joint_states_topic`` and ``input.effort_commands_topic`` (the latter only when ``input.torque_source``
+takes τ_m from it: with ``joint_states_effort`` the node has no command subscription to wait for) are read from the
+bag (as ``kvark replay`` reads them) and published under the same relative names, so ``--ros-args -r joint_states:=/arm/joint_states``
 remaps them as it would the node's. Each message goes out as the bag stores it (its serialized CDR bytes:
 stamps and values bit for bit), in log order, at log time / ``--rate`` after the start, with the sensor-data
 QoS the node subscribes with. Before the first message the player waits until every topic has a subscriber
@@ -26,7 +27,7 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from kvark_ros.core.config import load_config
+from kvark_ros.core.config import InputSettings, load_config
 from kvark_ros.io.bag_messages import TopicMessages, read_messages
 from kvark_ros.io.common import FLOAT64_ARRAY, JOINT_STATE
 
@@ -35,7 +36,7 @@ if TYPE_CHECKING:
 
 NODE_NAME = "kvark_player"
 MESSAGE_TYPES = {JOINT_STATE: JointState, FLOAT64_ARRAY: Float64MultiArray}
-__all__ = ["BagPlayer", "Recording", "read_recording", "main"]
+__all__ = ["BagPlayer", "Recording", "read_recording", "input_recording", "main"]
 
 
 @dataclass(frozen=True)
@@ -57,12 +58,23 @@ class Recording:
         return self.messages.duration
 
 
-def read_recording(bag: str | Path, joint_states_topic: str, effort_commands_topic: str) -> Recording:
-    """The two input topics of ``bag`` (relative config names; the bag records them absolute), read through
-    ``kvark_ros.io``: ``BagError`` naming the config key when one is missing or of a type the node does not take."""
-    topics = {f"/{joint_states_topic.lstrip('/')}": ("input.joint_states_topic", {JOINT_STATE}),
-              f"/{effort_commands_topic.lstrip('/')}": ("input.effort_commands_topic", {FLOAT64_ARRAY, JOINT_STATE})}
-    return Recording((joint_states_topic, effort_commands_topic), read_messages(bag, topics))
+def read_recording(bag: str | Path, joint_states_topic: str, effort_commands_topic: str | None) -> Recording:
+    """The input topics of ``bag`` (relative config names; the bag records them absolute; no command topic for
+    None), read through ``kvark_ros.io``: ``BagError`` naming the config key when one is missing or of a type the
+    node does not take."""
+    topics = {f"/{joint_states_topic.lstrip('/')}": ("input.joint_states_topic", {JOINT_STATE})}
+    names = [joint_states_topic]
+    if effort_commands_topic is not None:
+        topics[f"/{effort_commands_topic.lstrip('/')}"] = ("input.effort_commands_topic", {FLOAT64_ARRAY, JOINT_STATE})
+        names.append(effort_commands_topic)
+    return Recording(tuple(names), read_messages(bag, topics))
+
+
+def input_recording(bag: str | Path, settings: InputSettings) -> Recording:
+    """The topics of ``bag`` a node with the config's ``input`` settings subscribes to: the joint states, and the
+    commands unless ``torque_source`` is ``joint_states_effort``."""
+    commands = None if settings.torque_source == "joint_states_effort" else settings.effort_commands_topic
+    return read_recording(bag, settings.joint_states_topic, commands)
 
 
 class BagPlayer(Node):
@@ -144,7 +156,7 @@ def add_parser(subparsers: SubParsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     config = load_config(args.config)
-    recording = read_recording(args.bag, config.input.joint_states_topic, config.input.effort_commands_topic)
+    recording = input_recording(args.bag, config.input)
     rclpy.init(args=["kvark_play", "--ros-args", *args.ros_args] if args.ros_args else None)
     try:
         player = BagPlayer(recording)

@@ -152,3 +152,23 @@ def test_templates_encode_what_rosbags_decodes():
     assert [STORE.deserialize_cdr(bool_message(flag), BOOL).data for flag in (False, True)] == [False, True]
     with pytest.raises(ValueError, match="effort: 6 values for a field of 7"):
         joint_state_template(ARM).fill({"effort": tau[:6]})
+
+
+@pytest.mark.parametrize("frame", ["", "base", "panda_link0", "a_frame_id_of_some_length"])
+def test_a_wrench_with_its_covariance_and_the_flags_encode_what_rosbags_decodes(frame):
+    """TwistWithCovarianceStamped carrying a wrench (linear = force, angular = torque) and its 6×6 covariance, for
+    frame ids whose lengths put the numbers at every 8-byte alignment; the flags as a JointState's positions."""
+    rng = np.random.default_rng(len(frame))
+    wrench, covariance = rng.normal(size=6), rng.normal(size=36)
+    raw = cdr_messages.wrench_with_covariance_template(frame).fill(
+        {"sec": 7, "nanosec": 8, "wrench": wrench, "covariance": covariance})
+    message = STORE.deserialize_cdr(raw, cdr_messages.TWIST_WITH_COVARIANCE_STAMPED)
+    twist = message.twist.twist
+    assert (message.header.stamp.sec, message.header.stamp.nanosec, message.header.frame_id) == (7, 8, frame)
+    assert [twist.linear.x, twist.linear.y, twist.linear.z, twist.angular.x, twist.angular.y,
+            twist.angular.z] == wrench.tolist()
+    assert np.array_equal(message.twist.covariance, covariance)
+    flags = STORE.deserialize_cdr(joint_state_template(["contact", "collision"], field="position").fill(
+        {"sec": 1, "nanosec": 0, "position": [1.0, 0.0]}), JOINT_STATE)
+    assert flags.name == ["contact", "collision"] and flags.position.tolist() == [1.0, 0.0]
+    assert not len(flags.velocity) and not len(flags.effort)

@@ -176,7 +176,7 @@ def outputs(ros) -> SimpleNamespace:
         frames={m.header.frame_id for m in wrench},
         stddev=np.array([m.data for m in graph.published(f"{OUT}/external_joint_torque_stddev")]),
         covariance=np.array([m.data for m in graph.published(f"{OUT}/external_wrench_covariance")]),
-        contact=[m.data for m in graph.published(f"{OUT}/contact")])
+        contact=[m.position[0] == 1.0 for m in graph.published(f"{OUT}/contact_state")])
 
 
 def assert_nothing_non_finite(ros) -> None:
@@ -676,7 +676,8 @@ def test_launch_file_declares_config_and_namespace():
     [node] = [call for call in calls if call.func.id == "Node"]
     keywords = {k.arg: getattr(k.value, "value", None) for k in node.keywords}
     assert keywords["package"] == "kvark_ros" and keywords["executable"] == "estimator_node"
-    assert "name=NODE_NAME" in ast.unparse(node) and "NODE_NAME = 'kvark_estimator'" in ast.unparse(tree)
+    assert "name=NODE_NAME" in ast.unparse(node)
+    assert "from kvark_ros.core.config import NODE_NAME, launch_parameters" in ast.unparse(tree)
     assert "namespace" in keywords and "parameters" in keywords
     assert "get_package_share_directory" in ast.unparse(tree)
 

@@ -13,3 +13,15 @@ class Wrench(Message):
 
 class WrenchStamped(Message):
     FIELDS = {"header": Header, "wrench": Wrench}
+
+
+class Twist(Message):
+    FIELDS = {"linear": Vector3, "angular": Vector3}
+
+
+class TwistWithCovariance(Message):
+    FIELDS = {"twist": Twist, "covariance": "float64[]"}     # float64[36] in ROS
+
+
+class TwistWithCovarianceStamped(Message):
+    FIELDS = {"header": Header, "twist": TwistWithCovariance}

@@ -174,6 +174,7 @@ class Estimator:
         self.counts: Counter[str] = Counter()
         self.unobservable_samples = 0     # estimates with a wrench direction the joints cannot sense (§1.4.1)
         self.status = Status.WARMUP
+        self._shape = (robot.n,)                              # a sample's arrays (robot.n is a pinocchio call)
         self._last_sample = np.full((3, robot.n), np.nan)     # q, q̇, τ_m of the last sample taken (repeats)
         # What a real arm can hold (the URDF's limits with margins): a sample beyond is a glitch, not data; the same
         # bounds every command that reads a bag checks (core.estimation.sample_limits).
@@ -290,8 +291,8 @@ class Estimator:
     def _accept(self, stamp: float, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> float | None:
         """The input checks of ``step``: the time step dt (s) to the previous sample when the sample goes on to be
         estimated, else None (rejected and counted, or the first sample after a (re)start, which primes p and u)."""
-        n = self.robot.n
-        if q.shape != (n,) or qd.shape != (n,) or tau_m.shape != (n,):
+        shape = self._shape
+        if q.shape != shape or qd.shape != shape or tau_m.shape != shape:
             self._reject(Status.BAD_SHAPE)
             return None
         previous = self._stamp

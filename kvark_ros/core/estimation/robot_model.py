@@ -380,7 +380,8 @@ class RobotModel:
         force, moment = prior if prior is not None else (0.0, 0.0)
         params = np.array(pack(EstimatorParam, {EstimatorParam.DAMPING: damping, EstimatorParam.PRIOR_FORCE: force,
                                                 EstimatorParam.PRIOR_MOMENT: moment,
-                                                EstimatorParam.STICTION_VELOCITY: 0.0, EstimatorParam.Z: 0.0}))
+                                                EstimatorParam.STICTION_VELOCITY: 0.0, EstimatorParam.Z: 0.0,
+                                                EstimatorParam.KMP_SIZE: 0.0}))
         cov = np.zeros((n, n)) if tau_cov is None else np.ascontiguousarray(tau_cov, dtype=float)
         wrench, wrench_cov, directions = np.empty(6), np.empty((6, 6)), np.empty((6, 6))
         end_effector = frame != "base"

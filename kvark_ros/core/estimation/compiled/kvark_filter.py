@@ -15,7 +15,7 @@ from kvark_ros.core.estimation.compiled.jit import jit
 from kvark_ros.core.estimation.compiled.layouts import (CONST_ROWS, PARAMS, VEC_ROWS, Const, Counter, Option, Param,
                                                         Vec)
 
-PINS = {"layouts.py": "dccd51be1dd5e742e7ef515219e96a2eacf508684c77e450d5ad96ceede734d7"}
+PINS = {"layouts.py": "b567b01b443f6eb37b6883fed944593a9449df4a179e52a7f83d6a575b5beb9f"}
 
 # Samples of evidence from which an accepted jump counts as a step; on fewer its Var τ̂ also spans an impulse (§4.7).
 ONSET_EVIDENCE = 2

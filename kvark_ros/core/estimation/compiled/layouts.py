@@ -189,6 +189,7 @@ class EstimatorParam(Layout):
     PRIOR_MOMENT = enum.auto()          # wrench.prior_moment, N·m
     STICTION_VELOCITY = enum.auto()     # filter.stiction_velocity v_s, rad/s
     Z = enum.auto()                     # the collision test's z
+    KMP_SIZE = enum.auto()              # the length of the packed KMP in the buffer (0: none), then the augmentation's
 
 
 ESTIMATOR_PARAMS = len(EstimatorParam)

@@ -33,26 +33,31 @@ from kvark_ros.core.estimation.compiled.layouts import (ESTIMATOR_PARAMS, ROWS, 
 from kvark_ros.core.estimation.compiled.residual import augmentation_torque, kmp_predict
 from kvark_ros.core.estimation.compiled.wrench import cholesky, solve_wrench
 
-PINS = {"layouts.py": "dccd51be1dd5e742e7ef515219e96a2eacf508684c77e450d5ad96ceede734d7",
-        "kvark_filter.py": "9163fde019aad93e228e6c3f9931d8bd21ed75ffdb190897ff0185ac32234e99",
-        "residual.py": "82acff7a21d04d53e06d9f4b301e3529abcc796b4b672720fd9f77c6af1aae16",
-        "wrench.py": "3bdd2d0c02ae7b988dc3a96235bc47a77485ce227e3b6af4f3e4173010e1ce27"}
+PINS = {"layouts.py": "b567b01b443f6eb37b6883fed944593a9449df4a179e52a7f83d6a575b5beb9f",
+        "kvark_filter.py": "64529901f0cc1972d92341f6b5544027e22237b4d1f32dd0926d6a2f24a6ae7b",
+        "residual.py": "c31ae5ae6f4c7085292dc0aea07e9d728bbebaac379c6722ba134a197ea9e288",
+        "wrench.py": "a4d88c78d93b9eb29276ee68e6a0c511cf5aa3448bdcced3de037c4c86c5de80"}
 
 
 @jit
-def split_buffer(buffer: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def split_buffer(buffer: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                       np.ndarray]:
     """Views of the estimator's packed buffer: rows (ROWS, n) (``Row``), params (ESTIMATOR_PARAMS,)
-    (``EstimatorParam``), an observer's full P (n, n) and the weak wrench directions (6, 6).
-    ``split_buffer.py_func`` gives the same views in Python (``step.CompiledStep``)."""
+    (``EstimatorParam``), an observer's full P (n, n), the weak wrench directions (6, 6), then the trained model's
+    packed KMP (``residual.pack_kmp``, params[KMP_SIZE] long) and packed augmentation (``residual.pack_augmentation``,
+    the rest). ``split_buffer.py_func`` gives the same views in Python (``step.CompiledStep``)."""
     end_rows = ROWS * n
     end_params = end_rows + ESTIMATOR_PARAMS
     end_full = end_params + n * n
+    end_directions = end_full + 36
+    end_kmp = end_directions + int(buffer[end_rows + EstimatorParam.KMP_SIZE])
     return (buffer[:end_rows].reshape((ROWS, n)), buffer[end_rows:end_params],
-            buffer[end_params:end_full].reshape((n, n)), buffer[end_full:end_full + 36].reshape((6, 6)))
+            buffer[end_params:end_full].reshape((n, n)), buffer[end_full:end_directions].reshape((6, 6)),
+            buffer[end_directions:end_kmp], buffer[end_kmp:])
 
 
 def buffer_size(n: int) -> int:
-    """Length of the estimator's packed buffer of n joints (``split_buffer``)."""
+    """Length of the estimator's packed buffer of n joints before its KMP and augmentation (``split_buffer``)."""
     return ROWS * n + ESTIMATOR_PARAMS + n * n + 36
 
 
@@ -133,17 +138,15 @@ def _post_full(flags: int, qd: np.ndarray, tau: np.ndarray, cov: np.ndarray, mea
 @jit
 def estimate_step(flags: int, dt: float, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray, gravity: np.ndarray,
                   rnea: np.ndarray, coriolis: np.ndarray, jac: np.ndarray, rotation: np.ndarray, buffer: np.ndarray,
-                  kmp: np.ndarray, aug: np.ndarray, state: np.ndarray, ints: np.ndarray, constants: np.ndarray,
-                  options: np.ndarray, tau: np.ndarray, tau_cov: np.ndarray, wrench: np.ndarray,
-                  wrench_cov: np.ndarray) -> tuple[int, float, float, int]:
+                  state: np.ndarray, ints: np.ndarray, constants: np.ndarray, options: np.ndarray, tau: np.ndarray,
+                  tau_cov: np.ndarray, wrench: np.ndarray, wrench_cov: np.ndarray) -> tuple[int, float, float, int]:
     """One ``Estimator.step`` after its input checks and pinocchio passes (module docstring).
 
     ``flags``: ``Flag`` bits. ``q`` (n,) rad, ``qd`` (n,) rad/s, ``tau_m`` (n,) N·m: the sample; ``gravity`` g,
     ``rnea`` = M q̇ + g, ``coriolis`` C, ``jac`` J (6, n) in base axes, ``rotation`` R (3, 3) of the ee axes:
     pinocchio's
     outputs. ``buffer``: the estimator's (``split_buffer``: rows, params δ, wrench prior, v_s, z, an observer's full P,
-    the weak directions); ``kmp``: a packed KMP (``residual.pack_kmp``) for KMP; ``aug``: a packed augmentation
-    (``residual.pack_augmentation``) for AUGMENTED; ``state``, ``ints``, ``constants``, ``options``: the K-VARK filter's
+    the weak directions, the packed KMP for KMP and the packed augmentation for AUGMENTED); ``state``, ``ints``, ``constants``, ``options``: the K-VARK filter's
     (``kvark_filter``) for FILTER and PACKED. Outputs of POST: τ̂ (n,), Cov τ̂ (n, n), F (6,), Σ_F (6, 6).
     Returns
     (code: ``Outcome`` bits WEAK | DIVERGED | SINGULAR | UNTESTED, the contact statistic (NaN: S not positive
@@ -151,7 +154,7 @@ def estimate_step(flags: int, dt: float, q: np.ndarray, qd: np.ndarray, tau_m: n
     columns); with SINGULAR, F and Σ_F are not set.
     """
     n = qd.shape[0]
-    rows, params, full, directions = split_buffer(buffer, n)
+    rows, params, full, directions, kmp, aug = split_buffer(buffer, n)
     if flags & Flag.PACKED:
         vec = split_state(state, n, options[Option.SNAPSHOTS], options[Option.ONSETS])[0]
         estimate, variance_in, mean, var = vec[Vec.TAU], vec[Vec.C], vec[Vec.MEAN], vec[Vec.VAR]

@@ -21,7 +21,7 @@ from kvark_ros.core.estimation.compiled.layouts import KMP_HEADER, KMP_ROWS, Eff
 if TYPE_CHECKING:
     from kvark_ros.core.estimation.augmentation import Augmentation
 
-PINS = {"layouts.py": "dccd51be1dd5e742e7ef515219e96a2eacf508684c77e450d5ad96ceede734d7"}
+PINS = {"layouts.py": "b567b01b443f6eb37b6883fed944593a9449df4a179e52a7f83d6a575b5beb9f"}
 
 # ``augmentation_torque``'s code of every torque effect of the catalog: the ``Effect`` member of its name in upper case
 EFFECT_CODES = {name: int(Effect[name.upper()]) for name in TORQUE_EFFECTS}

@@ -16,7 +16,7 @@ import numpy as np
 
 from kvark_ros.core.config import EstimatorConfig
 from kvark_ros.core.estimation.calibration import IntervalScale
-from kvark_ros.core.estimation.compiled.layouts import EstimatorParam, Flag, Option, Outcome, Row, pack
+from kvark_ros.core.estimation.compiled.layouts import ROWS, EstimatorParam, Flag, Option, Outcome, Row, pack
 from kvark_ros.core.estimation.compiled.post import buffer_size, estimate_step, split_buffer
 from kvark_ros.core.estimation.compiled.residual import NO_AUGMENTATION, pack_augmentation
 from kvark_ros.core.estimation.observers.base import Observer
@@ -28,9 +28,8 @@ from kvark_ros.core.estimation.tare import Tare
 _MOMENTUM, _KMP, _FILTER, _SHIFT, _POST, _TARED, _LOADED, _FULL = (int(bit) for bit in (
     Flag.MOMENTUM, Flag.KMP, Flag.FILTER, Flag.SHIFT, Flag.POST, Flag.TARED, Flag.LOADED, Flag.FULL))
 _DIVERGED, _SINGULAR, _UNTESTED = (int(bit) for bit in (Outcome.DIVERGED, Outcome.SINGULAR, Outcome.UNTESTED))
-# The K-VARK filter's arrays of ``estimate_step`` for any other observer, and a KMP for none: never read.
+# The K-VARK filter's arrays of ``estimate_step`` for any other observer: never read.
 _NO_FILTER = (np.zeros(1), np.zeros(1, dtype=np.int64), np.zeros(1), np.zeros(len(Option), dtype=np.int64))
-_NO_KMP = np.zeros(1)
 # The rows a sample writes (the others hold settings and the tare offset).
 _TRANSIENT = [Row.P_PREV, Row.U_PREV, Row.P, Row.U, Row.AUG, Row.ESTIMATE, Row.VARIANCE, Row.MEAN, Row.VAR]
 
@@ -49,17 +48,22 @@ class CompiledStep:
                  config: EstimatorConfig, z: float, contact_kmp: object | None) -> None:
         n = self.n = robot.n
         self.robot, self.observer = robot, observer
-        self.buffer = np.zeros(buffer_size(n))
-        self.rows, self.params, self.full, self.directions = split_buffer.py_func(self.buffer, n)
-        self.offset = self.rows[Row.OFFSET]
-        augmentation = robot.augmentation
-        augmented = augmentation is not None and bool(augmentation.torque_effects)
-        aug = pack_augmentation(augmentation) if augmented else NO_AUGMENTATION
         self._fused = bool(getattr(observer, "compiled", False))
         kmp = getattr(observer, "kmp", None) if self._fused else None
         residual = observer.uses_residual_model or contact_kmp is not None
         if not self._fused and not observer.uses_residual_model and contact_kmp is not None:
             kmp = contact_kmp.compiled.packed
+        augmentation = robot.augmentation
+        augmented = augmentation is not None and bool(augmentation.torque_effects)
+        aug = pack_augmentation(augmentation) if augmented else NO_AUGMENTATION
+        self._kmp_size = 0 if kmp is None else kmp.size
+        # one buffer: its rows, params, a full P, the weak directions, a copy of the KMP and the augmentation
+        self.buffer = np.concatenate([np.zeros(buffer_size(n)), np.zeros(0) if kmp is None else kmp, aug])
+        self.buffer[ROWS * n + EstimatorParam.KMP_SIZE] = self._kmp_size
+        self.rows, self.params, self.full, self.directions, _, _ = split_buffer.py_func(self.buffer, n)
+        self.offset = self.rows[Row.OFFSET]
+        self.no_weak = np.zeros((6, 0))                   # the weak directions at a regular pose (read-only, shared)
+        self.no_weak.flags.writeable = False
         self._band, self._scale = band, scale
         if band is not None:
             self.rows[Row.BAND] = band
@@ -77,7 +81,7 @@ class CompiledStep:
         filter_arrays = observer.kernel_arguments() if self._fused else _NO_FILTER
         # The arrays every call passes, bound once: none of them is ever replaced, only written in place.
         self._pinocchio = (terms.gravity, terms.rnea, terms.coriolis)
-        self._models = (self.buffer, _NO_KMP if kmp is None else kmp, aug) + tuple(filter_arrays)
+        self._models = (self.buffer,) + tuple(filter_arrays)
         self.configure(config, z)
         self._compile()
 
@@ -88,7 +92,7 @@ class CompiledStep:
         self.params[:] = pack(EstimatorParam, {
             EstimatorParam.DAMPING: wrench.damping, EstimatorParam.PRIOR_FORCE: wrench.prior_force,
             EstimatorParam.PRIOR_MOMENT: wrench.prior_moment, EstimatorParam.STICTION_VELOCITY: velocity,
-            EstimatorParam.Z: z})
+            EstimatorParam.Z: z, EstimatorParam.KMP_SIZE: self._kmp_size})
         scale = self._scale
         if scale is not None:           # the floors in force: c_b² P_b in free motion, P_b under a load (§4.13)
             floored = config.filter.interval_floor == "kf"
@@ -180,4 +184,4 @@ class CompiledStep:
         if not observer.reports_covariance:
             tau_cov = wrench_cov = None
         return (code & _SINGULAR != 0, code & _DIVERGED != 0, code & _UNTESTED != 0, statistic, excess, tau, tau_cov,
-                wrench, wrench_cov, rotation, jac, self.directions[:, :k].copy())
+                wrench, wrench_cov, rotation, jac, self.directions[:, :k].copy() if k else self.no_weak)

@@ -13,7 +13,7 @@ import numpy as np
 from kvark_ros.core.estimation.compiled.jit import jit
 from kvark_ros.core.estimation.compiled.layouts import EstimatorParam, Outcome
 
-PINS = {"layouts.py": "dccd51be1dd5e742e7ef515219e96a2eacf508684c77e450d5ad96ceede734d7"}
+PINS = {"layouts.py": "b567b01b443f6eb37b6883fed944593a9449df4a179e52a7f83d6a575b5beb9f"}
 
 
 @jit

@@ -19,6 +19,7 @@ from typing import Any
 
 import yaml
 
+from kvark_ros.core.config import applies_to
 from kvark_ros.core.config_schema import OPEN_CHOICES, GROUPS, KEYS, KEYS_BY_NAME, NODE_NAME, Key, keys_table
 
 # Generated sources: the typed settings module and the key comments of the config files (module docstring).
@@ -135,7 +136,8 @@ def comment_lines(text: str, name: str) -> list[str]:
 class ConfigDocument:
     """What a config file holds besides the key table's text (the table gives every key's first comment lines).
 
-    ``header``: comment lines above ``kvark_estimator:``; ``values``: dotted key -> value (absent: its default);
+    ``header``: comment lines above the node's key; ``node_key``: that key (``kvark_estimator``, or
+    ``/**/kvark_estimator`` for the node in any namespace); ``values``: dotted key -> value (absent: its default);
     ``notes``: dotted key -> this file's comment lines below the table's, after a lone ``#``; ``prose``: dotted key
     or group -> comment lines above it, set apart from a key's comment by a blank line ('' = after the last key).
     Lines are stripped of their indentation.
@@ -143,6 +145,7 @@ class ConfigDocument:
 
     header: list[str] = field(default_factory=list)
     values: dict[str, Any] = field(default_factory=dict)
+    node_key: str = NODE_NAME
     notes: dict[str, list[str]] = field(default_factory=dict)
     prose: dict[str, list[str]] = field(default_factory=dict)
 
@@ -165,7 +168,7 @@ def config_text(document: ConfigDocument) -> str:
     unknown = sorted(set(document.values) - set(KEYS_BY_NAME))
     if unknown:
         raise ValueError(f"unknown key '{unknown[0]}'")
-    lines = [*document.header, f"{NODE_NAME}:", "  ros__parameters:"]
+    lines = [*document.header, f"{document.node_key}:", "  ros__parameters:"]
 
     def emit(node: dict[str, Any], path: str, depth: int) -> None:
         indent = "  " * depth
@@ -204,11 +207,13 @@ def parse_config_text(text: str, source: str = "config") -> ConfigDocument:
     comment lines just above a key up to a lone ``#`` (all of them without one). Inline comments are dropped too."""
     lines = text.splitlines()
     try:
-        start = lines.index(f"{NODE_NAME}:")
-        parameters = yaml.safe_load(text)[NODE_NAME]["ros__parameters"]
-    except (ValueError, TypeError, KeyError, yaml.YAMLError) as exc:
+        start = next(k for k, line in enumerate(lines) if line.endswith(":") and not line[:1].isspace()
+                     and not line.startswith("#") and applies_to(line[:-1]))
+        node_key = lines[start][:-1]
+        parameters = yaml.safe_load(text)[node_key]["ros__parameters"]
+    except (StopIteration, TypeError, KeyError, yaml.YAMLError) as exc:
         raise ValueError(f"{source}: not a config file ('{NODE_NAME}: ros__parameters:' expected)") from exc
-    document = ConfigDocument(header=_trim(lines[:start]), values=_flatten(parameters))
+    document = ConfigDocument(header=_trim(lines[:start]), values=_flatten(parameters), node_key=node_key)
     unknown = sorted(set(document.values) - set(KEYS_BY_NAME))
     if unknown:
         raise ValueError(f"{source}: unknown key '{unknown[0]}'")
@@ -282,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--write-settings", action="store_true", help=f"write {SETTINGS_PATH.name} (typed settings)")
     parser.add_argument("--write-configs", nargs="*", metavar="FILE",
                         help="rewrite the key comments of config files, keeping their values, notes and prose "
-                             f"(default: {CONFIG_DIR}/*.yaml)")
+                             f"(default: {CONFIG_DIR}/**/*.yaml)")
     parser.add_argument("--write-keys-doc", type=Path, metavar="MARKDOWN",
                         help="replace the table of keys in this document (docs/configuration.md) by "
                              "`kvark config --keys`")
@@ -292,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.write_settings:
         _write(SETTINGS_PATH, settings_source())
     if args.write_configs is not None:
-        for path in map(Path, args.write_configs or sorted(CONFIG_DIR.glob("*.yaml"))):
+        for path in map(Path, args.write_configs or sorted(CONFIG_DIR.rglob("*.yaml"))):
             _write(path, regenerated_config_text(path.read_text(), str(path)))
     if args.write_keys_doc is not None:
         _write(args.write_keys_doc, document_with_keys_table(args.write_keys_doc.read_text()))

@@ -55,7 +55,7 @@ if TYPE_CHECKING:
 TOLERANCE = 1e-9            # N·m: the node and replay run the same code on the same numbers
 DOMAIN_RANGE = (101, 200)   # ROS_DOMAIN_ID drawn from here (Fast DDS allows at most 232)
 IDLE = 5.0                  # s of idling counted after the work with callgrind, to subtract the node's idle work
-__all__ = ["Recorder", "check_node", "main"]
+__all__ = ["Recorder", "check_node", "compare", "main"]
 
 
 class Recorder(Node):
@@ -151,7 +151,7 @@ def check_node(config_path: str, bag: str, model_dir: str | None = None, rate: f
             node_log.seek(0)
             figures["node_log_tail"] = node_log.read()[-2000:]
             node_log.close()
-    figures.update(_compare(figures.pop("torque"), config, model_dir, bag))
+    figures.update(compare(figures.pop("torque"), config, model_dir, bag))
     figures.update(config=str(config_path), bag=str(bag), model=str(model_dir), rate=rate, reload_at=reload_at,
                    domain_id=domain, load_cores=load_cores, cores=os.cpu_count())
     if "instructions" in figures:
@@ -246,8 +246,9 @@ def _diagnostic_value(arrays: list[DiagnosticArray], status_name: str, key: str)
     return None
 
 
-def _compare(torque: list, config: EstimatorConfig, model_dir: str, bag: str) -> dict:
-    """The node's τ_ext against replay's on the same samples."""
+def compare(torque: list, config: EstimatorConfig, model_dir: str, bag: str) -> dict:
+    """The node's τ_ext (``torque``: (stamp s, τ_ext, …) per estimate) against replay's on the same samples of
+    ``bag``: counts and the largest difference."""
     trained = load_model(model_dir, config.joint_names, urdf_sha256(config.urdf))
     inputs = read_inputs(bag, config)[1]
     expected = run_observer(config, trained, inputs, config.observer)

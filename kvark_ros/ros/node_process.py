@@ -34,19 +34,21 @@ def local_domain(domain: int, log_dir: Path) -> dict[str, str]:
     return {"ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST", "ROS_LOG_DIR": str(log_dir)}
 
 
-def start_node(parameters: Path, env: dict[str, str], output: IO, prefix: tuple[str, ...] = ()) -> subprocess.Popen:
+def start_node(parameters: Path, env: dict[str, str], output: IO, prefix: tuple[str, ...] = (),
+               ros_arguments: tuple[str, ...] = (), cwd: Path | None = None) -> subprocess.Popen:
     """``estimator_node`` as ``ros2 run`` starts it, with the whole environment ``env``, its output to ``output``
-    (``prefix``: a command to run it under, e.g. valgrind).
+    (``prefix``: a command to run it under, e.g. valgrind; ``ros_arguments``: more after ``--ros-args``, e.g.
+    ``-r __ns:=/lbr``), in ``cwd`` (default: the parameter file's folder).
 
-    It runs the ``kvark_ros`` this process imported, the code replay compares it with: started in the parameter
-    file's folder with that package's parent first on ``PYTHONPATH``, so that no other copy in the working
-    directory (a checkout beside an installed package) is imported instead."""
+    It runs the ``kvark_ros`` this process imported, the code replay compares it with: with that package's parent
+    first on ``PYTHONPATH``, so that no other copy in the working directory (a checkout beside an installed package)
+    is imported instead."""
     package_parent = str(Path(__file__).resolve().parents[2])
     path = os.pathsep.join(filter(None, (package_parent, env.get("PYTHONPATH"))))
     parameters = parameters.resolve()
     return subprocess.Popen([*prefix, sys.executable, "-m", "kvark_ros.ros.estimator_node", "--ros-args",
-                             "--params-file", str(parameters)], env={**env, "PYTHONPATH": path},
-                            cwd=parameters.parent, stdout=output, stderr=subprocess.STDOUT)
+                             *ros_arguments, "--params-file", str(parameters)], env={**env, "PYTHONPATH": path},
+                            cwd=cwd or parameters.parent, stdout=output, stderr=subprocess.STDOUT)
 
 
 def stop_node(process: subprocess.Popen, timeout: float = 10.0) -> int:

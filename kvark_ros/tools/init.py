@@ -10,24 +10,30 @@ Relative paths in a config are relative to its own folder: the URDF is written r
 lies in the same project (under the config folder's parent), else absolute; a xacro is expanded into
 ``<robot>.urdf`` next to the config; ``residual_model.model_dir`` is ``../models/<robot>`` for a
 config in a ``config/`` folder (the package layout: config/ and models/ side by side), else
-``models/<robot>`` next to the config.
+``models/<robot>`` next to the config. The file's key is ``/**/kvark_estimator``: it applies to the node
+in any namespace (``ros2 run … --ros-args -r __ns:=/lbr --params-file FILE``) and every command reads it.
+``--driver franka|ur|lbr`` sets what the driver publishes (``kvark_ros.tools.drivers``): the torque source and
+its measurement, the joint-state topic, the flange and ee frames and the wrench's base frame; ``--effort-scale``
+and ``--effort-offset`` the effort's conversion to N·m (a UR's motor current).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import re
 import tempfile
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import pinocchio as pin
 
-from kvark_ros.core.config import EXAMPLE_ROBOT_DATA_PREFIX, ConfigError, load_config
+from kvark_ros.core.config import ANY_NAMESPACE, EXAMPLE_ROBOT_DATA_PREFIX, ConfigError, load_config
 from kvark_ros.core.config_sources import ConfigDocument, comment_lines, config_text
 from kvark_ros.core.files import check_output, write_text_atomically
 from kvark_ros.core.estimation.robot_model import RobotModel, resolve_urdf
+from kvark_ros.tools.drivers import DRIVERS, Driver
 from kvark_ros.tools.xacro_files import expand_xacro, parse_assignments
 
 if TYPE_CHECKING:
@@ -118,6 +124,28 @@ def choose_joints_and_frames(model: pin.Model, joints: list[str] | None, ee_fram
     return names, ee_frame, _frame(model, flange_frame, "--flange-frame", last), notes
 
 
+def driver_settings(driver: Driver, model: pin.Model, names: list[str], given: tuple[str | None, str | None],
+                    frames: tuple[str, str], scale: list[float] | None,
+                    notes: dict[str, str]) -> tuple[dict[str, Any], tuple[str, str]]:
+    """(config values, (ee frame, flange frame)) of ``driver`` for the chain ``names``: its frames where the user
+    gave none (``given``) and the URDF has them, else ``frames`` as proposed; ``notes`` get the driver's."""
+    if driver.needs_effort_scale and scale is None:
+        raise ConfigError(f"--driver {driver.name}: the driver's joint_states effort is a motor current (A); pass "
+                          "--effort-scale with N·m/A per joint (the robot's own: actual_current_as_torque / "
+                          "actual_current), or --effort-scale 1 where it reports torque (docs/ros.md, Drivers)")
+    values = {**driver.values, **driver.topics(names)}
+    proposed = driver.frames(names, model.existFrame)
+    chosen = tuple(mine or (theirs if theirs and model.existFrame(theirs) else default)
+                   for mine, theirs, default in zip(given, proposed, frames))
+    for key, mine, frame in zip(("robot_model.ee_frame", "robot_model.flange_frame"), given, chosen):
+        if mine is None and frame in proposed:
+            notes[key] = f"Set by kvark init --driver {driver.name}."
+    if driver.base_frame and model.existFrame(driver.base_frame):
+        values["wrench.base_frame"] = driver.base_frame
+    notes.update(driver.notes)
+    return values, (chosen[0], chosen[1])
+
+
 def config_relative(target: Path, folder: Path) -> str:
     """A path as the config writes it: relative to its folder when under that folder's parent, else absolute."""
     target, folder = target.resolve(), folder.resolve()
@@ -163,7 +191,8 @@ def add_parser(subparsers: SubParsers) -> None:
                                    description=__doc__.split("\n\n")[1].replace("``", ""),
                                    formatter_class=argparse.RawDescriptionHelpFormatter)
     source = parser.add_mutually_exclusive_group(required=True)
-    source.add_argument("--urdf", metavar="FILE", help="the robot's URDF (or example-robot-data:panda / :ur5)")
+    source.add_argument("--urdf", metavar="FILE",
+                        help="the robot's URDF (or example-robot-data:panda / :ur5 / :ur10)")
     source.add_argument("--xacro", metavar="FILE", help="the robot's xacro, expanded into <robot>.urdf next to --out")
     parser.add_argument("--package-path", action="append", default=[], metavar="NAME=DIR",
                         help="folder of ROS package NAME for $(find NAME) and package://NAME/ (repeatable)")
@@ -173,11 +202,31 @@ def add_parser(subparsers: SubParsers) -> None:
                                                           "arm, see above)")
     parser.add_argument("--ee-frame", metavar="FRAME", help="wrench reference frame (default: the chain's last link)")
     parser.add_argument("--flange-frame", metavar="FRAME", help="frame a payload attaches to (default: the ee frame)")
+    parser.add_argument("--driver", choices=sorted(DRIVERS),
+                        help="the ROS 2 driver that publishes the arm's joint states: franka (franka_ros2), ur "
+                             "(ur_robot_driver) or lbr (lbr_fri_ros2_stack); sets the torque source, its measurement, "
+                             "the topic, the frames and the wrench's base frame as it publishes them")
+    parser.add_argument("--effort-scale", type=_numbers, metavar="K[,K...]",
+                        help="input.effort_scale: N·m per unit of the effort field, one value or one per joint (a "
+                             "motor current in A: N·m/A); needed with --driver ur")
+    parser.add_argument("--effort-offset", type=_numbers, metavar="B[,B...]",
+                        help="input.effort_offset: N·m added after the scale, one value or one per joint")
     parser.add_argument("--robot", required=True, help="robot name (letters, digits, _ and -): in models, reports "
                                                        "and file names")
     parser.add_argument("--out", required=True, metavar="FILE", help="config to write, e.g. config/myrobot.yaml")
     parser.add_argument("--force", action="store_true", help="replace an existing --out (and expanded URDF)")
     parser.set_defaults(run=run)
+
+
+def _numbers(text: str) -> list[float]:
+    """``--effort-scale``/``--effort-offset``: comma-separated finite numbers (argparse type)."""
+    try:
+        values = [float(part) for part in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or not all(math.isfinite(value) for value in values):
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}")
+    return values
 
 
 def run(args: argparse.Namespace) -> int:
@@ -194,6 +243,13 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"{args.urdf or args.xacro}: the URDF could not be parsed ({exc})") from exc
     joints = [name.strip() for name in args.joints.split(",")] if args.joints else None
     names, ee_frame, flange_frame, notes = choose_joints_and_frames(model, joints, args.ee_frame, args.flange_frame)
+    driver_values: dict[str, Any] = {}
+    if args.driver is not None:
+        driver_values, (ee_frame, flange_frame) = driver_settings(
+            DRIVERS[args.driver], model, names, (args.ee_frame, args.flange_frame), (ee_frame, flange_frame),
+            args.effort_scale, notes)
+    driver_values.update({key: value for key, value in (("input.effort_scale", args.effort_scale),
+                                                          ("input.effort_offset", args.effort_offset)) if value})
     RobotModel(xml, names, ee_frame, flange_frame)   # the estimator's own checks (chain order, 1-DoF joints)
     model_dir = f"../models/{args.robot}" if out.parent.resolve().name == "config" else f"models/{args.robot}"
     train_out = os.path.relpath(out.parent.resolve() / model_dir)
@@ -201,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
     notes["residual_model.model_dir"] = "Relative to this file's folder; `kvark train --out` must write this directory."
     values = {"robot": args.robot, "robot_model.urdf": urdf_value, "robot_model.joint_names": names,
               "robot_model.ee_frame": ee_frame, "robot_model.flange_frame": flange_frame,
-              "residual_model.model_dir": model_dir}
+              "residual_model.model_dir": model_dir, **driver_values}
     header = [f"kvark_ros estimator configuration: {args.robot} ({len(names)} joints), written by `kvark init`.",
               "The same file is the ROS 2 node's parameter file and the config of `kvark import`, `kvark diagnose`,",
               "`kvark train` and `kvark replay`. Units are SI (rad, rad/s, N·m, N, s). Nested groups become dotted",
@@ -210,9 +266,13 @@ def run(args: argparse.Namespace) -> int:
               "`python -m kvark_ros.core.config_sources --write-configs FILE` rewrites them, keeping the values",
               "and the notes after a lone '#'.",
               "Relative paths (robot_model.urdf, residual_model.model_dir, model_augmentation) are relative to",
-              "this file's folder."]
+              f"this file's folder. The key {ANY_NAMESPACE} applies to the node in any namespace."]
+    if args.driver is not None:
+        header.append(f"Driver: kvark init --driver {args.driver} set the torque source, the topic and the frames "
+                      "(docs/ros.md, Drivers).")
     text = config_text(ConfigDocument(header=[f"# {line}" if line else "#" for line in header], values=values,
-                                      notes={key: comment_lines(note, key) for key, note in notes.items() if note}))
+                                      notes={key: comment_lines(note, key) for key, note in notes.items() if note},
+                                      node_key=ANY_NAMESPACE))
     out.parent.mkdir(parents=True, exist_ok=True)
     _check(text, out)
     if expanded is not None:
@@ -226,6 +286,9 @@ def run(args: argparse.Namespace) -> int:
         shown = [] if key == "robot_model.joint_names" else [str(values[key])]
         shown += [f"({notes[key]})"] if key in notes else []
         print(f"  {key.split('.')[-1]}: {' '.join(shown)}")
+    for key in ("input.torque_source", "input.joint_states_topic", "input.effort_scale", "wrench.base_frame"):
+        if key in driver_values:
+            print(f"  {key}: {driver_values[key]}")
     print(f"  model directory: {model_dir} (relative to {out.parent}); train it with "
           f"`kvark train --config {args.out} --bags BAG... --out {train_out}`")
     return 0

@@ -8,7 +8,7 @@ import pytest
 import yaml
 
 from kvark_ros.cli import main
-from kvark_ros.core.config import NODE_NAME, flatten_parameters, load_config
+from kvark_ros.core.config import NODE_NAME, file_parameters, load_config
 from kvark_ros.core.config_schema import KEYS, KEYS_BY_NAME
 from kvark_ros.core.config_sources import regenerated_config_text
 from kvark_ros.core.estimation.robot_model import RobotModel
@@ -45,7 +45,7 @@ def _init(*args: str | Path) -> int:
 
 
 def _parameters(path: Path) -> dict:
-    return flatten_parameters(yaml.safe_load(path.read_text())[NODE_NAME]["ros__parameters"])
+    return file_parameters(yaml.safe_load(path.read_text()), str(path))
 
 
 def _urdf_of(config_path: Path) -> Path:

@@ -31,6 +31,8 @@ class Command(NamedTuple):
 
 COMMANDS = (
     Command("simulate", "kvark_ros.sim.cli", "record a simulated run with ground truth into a bag"),
+    Command("excitation", "kvark_ros.sim.excitation_command",
+            "write an optimised excitation trajectory within a real arm's limits (CSV, JointTrajectory)"),
     Command("diagnose", "kvark_ros.gap.diagnose",
             "name the physical effects the nominal model lacks, from contact-free bags"),
     Command("train", "kvark_ros.tools.train", "train the residual models and filter tuning from contact-free bags"),

@@ -22,7 +22,9 @@ from kvark_ros.io.cdr_arrays import Layout, message_fields
 from kvark_ros.io.common import BOOL, FLOAT64_ARRAY, JOINT_STATE, WRENCH_STAMPED, typestore
 
 __all__ = ["Decoder", "Template", "bool_message", "float64_array_template", "joint_state_template",
-           "wrench_template", "wrench_with_covariance_template", "TWIST_WITH_COVARIANCE_STAMPED"]
+           "wrench_template", "wrench_with_covariance_template", "joint_trajectory_message",
+           "TWIST_WITH_COVARIANCE_STAMPED", "JOINT_TRAJECTORY"]
+JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
 
 # The stamped message of common_interfaces that holds a 6-vector and its 6×6 covariance: the node's wrench with its
 # covariance (geometry_msgs has no WrenchWithCovarianceStamped).
@@ -178,6 +180,23 @@ def wrench_with_covariance_template(frame_id: str) -> Template:
               "nanosec": (8, np.dtype(order + "u4"), np.dtype("u4"), 1),
               "wrench": (values, floats, np.dtype("f8"), 6), "covariance": (values + 48, floats, np.dtype("f8"), 36)}
     return Template(message, raw, (), fields)
+
+
+def joint_trajectory_message(joint_names: Sequence[str], times: np.ndarray, positions: np.ndarray,
+                             velocities: np.ndarray, accelerations: np.ndarray) -> bytes:
+    """trajectory_msgs/JointTrajectory with a point per row, serialised: ``times`` (T,) s from start, positions
+    (T, n) rad, velocities (T, n) rad/s, accelerations (T, n) rad/s², in ``joint_names`` order; stamp 0 (start
+    when received, as a joint trajectory controller reads it)."""
+    types = typestore().types
+    duration, point = types["builtin_interfaces/msg/Duration"], types["trajectory_msgs/msg/JointTrajectoryPoint"]
+    points = []
+    for t, q, qd, qdd in zip(times, positions, velocities, accelerations):
+        sec, nanosec = divmod(int(round(float(t) * 1e9)), 1_000_000_000)
+        points.append(point(positions=np.asarray(q, dtype=float), velocities=np.asarray(qd, dtype=float),
+                            accelerations=np.asarray(qdd, dtype=float), effort=np.zeros(0),
+                            time_from_start=duration(sec=sec, nanosec=nanosec)))
+    message = types[JOINT_TRAJECTORY](header=_header(""), joint_names=list(joint_names), points=points)
+    return bytes(typestore().serialize_cdr(message, JOINT_TRAJECTORY))
 
 
 def float64_array_template(dims: Sequence[tuple[str, int, int]], length: int) -> Template:

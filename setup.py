@@ -24,5 +24,7 @@ setup(
         *_tree("launch"),
         *_tree("config"),
         *_tree("models"),
+        *_tree("rviz"),
+        *_tree("plotjuggler"),
     ],
 )

@@ -13,10 +13,10 @@ from kvark_ros.core.effect_catalog import BODY_EFFECTS, EFFECTS_BY_NAME, PRIOR_B
 from kvark_ros.core.estimation.payload import inertia_problem
 from kvark_ros.gap.effects import Priors, Term, theta_split
 from kvark_ros.gap.fitting import Fitter
-from kvark_ros.gap.priors import FAR_BEYOND
 
 MAX_PRIOR_HALVINGS = 12  # a body's prior σ may shrink 4096-fold toward the URDF before the candidate is refused
 BOUND_SHARE = 0.01       # a parameter within 1 % of its prior's range from a bound is "at the bound"
+LOAD_RADIUS = 0.02       # m: a load's second moments are pulled toward a solid sphere of this radius at its CoM
 
 
 def _prior_bounds(term: Term, priors: Priors) -> tuple[np.ndarray, np.ndarray]:
@@ -108,9 +108,15 @@ def saturated_joints(fitter: Fitter, terms: Sequence[Term], theta: np.ndarray) -
 
 
 def inconsistent_bodies(fitter: Fitter, term: Term, theta: np.ndarray) -> list[tuple[int, str]]:
-    """(body index, problem) of every body a payload (index 0) or link_inertia θ makes physically impossible."""
+    """(body index, problem) of every body a payload (index 0) or link_inertia θ makes physically impossible. A
+    payload must leave the flange link consistent, and one of positive mass (a tool or load, as the report calls it)
+    must be a body itself too (its pseudo-inertia positive semi-definite, Wensing et al. 2018; docs/method.md §8): what
+    the report names is what is checked."""
     if term.name == "payload":
-        problem = inertia_problem(fitter.flange + fitter.flange_map @ term.full_theta(theta))
+        full = term.full_theta(theta)
+        problem = inertia_problem(fitter.flange + fitter.flange_map @ full)
+        if problem is None and full[0] > 0.0 and (own := inertia_problem(full)) is not None:
+            problem = f"the load itself: {own}"
         return [] if problem is None else [(0, problem)]
     if term.name == "link_inertia":
         return [(i, problem) for i, (urdf, change) in enumerate(zip(fitter.links, theta.reshape(-1, 10)))
@@ -127,13 +133,15 @@ def bad_bodies(fitter: Fitter, terms: Sequence[Term], theta: np.ndarray) -> list
     return bad
 
 
-def point_mass_moments(theta: np.ndarray) -> np.ndarray:
+def point_mass_moments(theta: np.ndarray, radius: float = 0.0) -> np.ndarray:
     """Prior mean (10,) of a payload θ = [m, m c, I about the origin: ixx ixy iyy ixz iyz izz]: zero mass and first
     moments, and the second moments of a point mass m at c, m (|c|² E − c cᵀ), the least inertia a body of that
-    mass and centre can have about the origin (a body's inertia about its centre is positive semi-definite)."""
+    mass and centre can have about the origin (a body's inertia about its centre is positive semi-definite); with a
+    ``radius`` (m) and a positive mass, those of a solid sphere of that radius instead, (2/5) m r² E more: strictly
+    inside the physical set, where a fit pulled toward it lands on a body, not on its boundary."""
     m = float(theta[0])
     com = np.asarray(theta[1:4], dtype=float) / m if m != 0.0 else np.zeros(3)
-    inertia = m * (float(com @ com) * np.eye(3) - np.outer(com, com))
+    inertia = m * (float(com @ com) * np.eye(3) - np.outer(com, com)) + 0.4 * max(m, 0.0) * radius ** 2 * np.eye(3)
     return np.concatenate([np.zeros(4), inertia[[0, 0, 1, 0, 1, 2], [0, 1, 1, 2, 2, 2]]])
 
 
@@ -158,7 +166,7 @@ def consistent(fitter: Fitter, terms: Sequence[Term], *fit: np.ndarray) -> tuple
             name = terms[index].name
             if name == "payload":      # its second moments pulled toward a point mass of its fitted mass and CoM
                 fitter.prior_mean[name] = point_mass_moments(terms[index].full_theta(
-                    theta_split(terms, fit[0])[index]))
+                    theta_split(terms, fit[0])[index]), LOAD_RADIUS)
             scale = fitter.prior_scale[name].copy()
             block = slice(0, 10) if name == "payload" else slice(10 * body, 10 * body + 10)
             first = fitter.first_prior[name][block]
@@ -190,12 +198,15 @@ def inadmissible(fitter: Fitter, terms: Sequence[Term], term: Term, theta: np.nd
 
 def beyond_priors(fitter: Fitter, terms: Sequence[Term], gains: Callable[[np.ndarray, np.ndarray], np.ndarray]
                   ) -> list[dict]:
-    """Effects the data want beyond their prior: every (effect, variant, joint) dropped at its prior during the
-    selection, refitted on top of the final ``terms`` with that effect's prior removed; kept when its value then lies
-    beyond the prior, the BIC improves and ``gains(before, after)`` (held-out gap per joint) names a joint. One record
-    per effect and joint, the largest held-out gain: effect, joint (−1: body), wanted |θ|, bound, their ratio,
-    held-out gap before/after of the joints it helps; a weaker record on the same joints goes to the stronger one's
-    ``look_alikes``."""
+    """Effects the data want beyond their prior, best evidence first: every (effect, variant, joint) dropped at its
+    prior during the selection, refitted on top of the final ``terms`` with its prior widened to physics
+    (``Priors.physics``: a gain not near zero, an offset within the effort limit; unbounded where physics says
+    nothing); kept when its value then lies beyond the prior but inside physics, the BIC improves and ``gains(before,
+    after)`` (held-out gap per joint) names a joint. A value at the physical bound is not that effect: it is not
+    offered. One record per effect and joint, its largest held-out gain: effect, joint (−1: body), wanted |θ|, bound,
+    their ratio, held-out gap before/after of the joints it helps, ΔBIC. Ordered by how much of the held-out gap
+    each explains (N·m summed over the joints it helps; then the BIC), whatever its ratio: the report leads with the
+    explanation that explains most; a weaker record on the same joints goes to the stronger one's ``look_alikes``."""
     base = fitter.fit(list(terms))
     k = sum(t.size for t in terms)
     bic = fitter.bic(base[2], k)
@@ -207,35 +218,36 @@ def beyond_priors(fitter: Fitter, terms: Sequence[Term], gains: Callable[[np.nda
     for name, variant, joint in sorted(fitter.dropped - present):
         probe = Term(name, tuple(range(fitter.n)) if joint < 0 else (joint,), dict(variant))
         limit = np.asarray(priors.limit(name), dtype=float)
-        fitter.priors = replace(priors, limits={**priors.limits, name: np.full_like(limit, np.inf)},
-                                max_gain_error=np.inf if name == "drive_gain" else priors.max_gain_error)
+        physical = np.broadcast_to(np.asarray(priors.physics.get(name, np.inf), dtype=float), limit.shape)
+        fitter.priors = replace(priors, limits={**priors.limits, name: physical.copy()})
         try:
             theta, _, r_tr, r_he = fitter.fit([*terms, probe])
+            wide_hi = probe.bounds(fitter.priors)[1]
         finally:
             fitter.priors = priors
-        mine = theta[k:]
+        mine = theta[k:k + probe.size]
         lo, hi = probe.bounds(priors)
         over = np.maximum(mine - hi, -np.inf if EFFECTS_BY_NAME[name].nonnegative else lo - mine)
+        edge = np.where(np.isfinite(wide_hi), (1.0 - BOUND_SHARE) * wide_hi, np.inf)    # within 1 % of physics
+        at_physics = (mine >= edge) | (~EFFECTS_BY_NAME[name].nonnegative & (mine <= -edge))
         if name == "payload":
-            over = over[:1]
+            over, at_physics = over[:1], at_physics[:1]
         after = np.sqrt(np.mean(np.square(r_he), axis=0))
         helped = gains(before, after)
-        if not np.any(over > 0.0) or len(helped) == 0 or fitter.bic(r_tr, k + probe.size) >= bic:
+        new_bic = fitter.bic(r_tr, k + probe.size)
+        if not np.any(over > 0.0) or np.any(at_physics) or len(helped) == 0 or new_bic >= bic:
             continue
         worst = int(np.argmax(over))
         record = {"effect": name, "variant": dict(variant), "joint": joint, "wanted": float(abs(mine[worst])),
                   "bound": float(hi[worst]), "ratio": float(abs(mine[worst]) / hi[worst]),
                   "joints_helped": [int(j) for j in helped],
-                  "held_out_before": before[helped].tolist(), "held_out_after": after[helped].tolist()}
-        gain = float(np.sum(before[helped] - after[helped]))
+                  "held_out_before": before[helped].tolist(), "held_out_after": after[helped].tolist(),
+                  "explained": float(np.sum(before[helped] - after[helped])), "delta_bic": float(new_bic - bic)}
         key = (name, joint)
-        if key not in found or gain > found[key]["_gain"]:
-            found[key] = {**record, "_gain": gain}
-    # The best plausible explanation of a joint's gap first (within FAR_BEYOND of its prior, then the largest gain); a
-    # weaker one on the same joints is its look-alike.
+        if key not in found or record["explained"] > found[key]["explained"]:
+            found[key] = record
     kept: list[dict] = []
-    for record in sorted(found.values(), key=lambda item: (item["ratio"] > FAR_BEYOND, -item["_gain"])):
-        record.pop("_gain")
+    for record in sorted(found.values(), key=lambda item: (-item["explained"], item["delta_bic"])):
         better = next((other for other in kept if set(record["joints_helped"]) <= set(other["joints_helped"])), None)
         if better is None:
             kept.append({**record, "look_alikes": []})

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import yaml
@@ -45,10 +46,12 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
         raw_cells = f"{raw['before'][j]:.4f} | {raw['after'][j]:.4f}" if raw["before"] else "– | –"
         lines.append(f"| {name} | {b:.4f} | {a:.4f} | {1 - a / b if b > 0 else 0:.0%} | {raw_cells} |")
     lines += [f"| mean | {r['gap_before']['joint_rmse_mean']:.4f} | {r['gap_after']['joint_rmse_mean']:.4f} | | "
-              f"{raw['before_mean']:.4f} | {raw['after_mean']:.4f} |", "", *_priors_table(r["priors"]), "",
-              "## Warnings", ""]
+              f"{raw['before_mean']:.4f} | {raw['after_mean']:.4f} |", "", "## Warnings", "",
+              *(["What the data want beyond a prior comes first, the explanation that explains most of the held-out "
+                 "gap first; then the parameters at a bound of their prior.", ""] if r["warnings"] else [])]
     lines += [f"- {warning}" for warning in r["warnings"]] or [
         "None: no parameter sits at a bound of its prior, and no effect wants a value beyond it."]
+    lines += ["", *drive_gains_section(r["drive_gains"], robot.joint_names), "", *_priors_table(r["priors"])]
     lines += ["", "## Look-alikes", "",
               "Effects whose regressors are nearly collinear on this motion (cosine of the smallest principal angle "
               "≥ 0.95): the data alone do not tell them apart; the accepted one won on BIC, held-out gap and priors.",
@@ -67,24 +70,64 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
         lines.append("None: the nominal model explains the data to within the noise.")
     for eff in r["effects"]:
         if eff["name"] == "payload":
-            width = eff["ci95"].get("mass")
-            lines.append(f"- **{eff['parameters']['kind']}**: mass change {eff['parameters']['mass_change']:+.3f}"
-                         f"{'' if width is None else f' ± {width:.3f}'} kg (95 %; flange link "
-                         f"{eff['parameters']['flange_link_mass_urdf']:.3f} → "
-                         f"{eff['parameters']['flange_link_mass_total']:.3f} kg)")
+            lines += _payload_lines(eff)
         use = eff.get("prior_use")
         lines.append(f"- **{eff['name']}** on joints {[robot.joint_names[j] for j in eff['joints']]}: "
                      f"held-out gap of those joints −{eff['gap_reduction']:.0%}"
                      + ("" if use is None else f"; uses {use:.0%} of its prior (the largest |value| / bound)"))
         lines.append(f"  - parameters: `{json.dumps(eff['parameters'])}`")
         lines.append(f"  - 95 % half-widths (least squares with the residuals' correlation in time; a payload's mass "
-                     f"also carries the drive-gain prior; docs/method.md §8.3): `{json.dumps(eff['ci95'])}`")
+                     f"also carries the drive gains' intervals; docs/method.md §8.3): `{json.dumps(eff['ci95'])}`")
     lines += ["", "Plots, on the held-out samples: `gap_per_joint.png` (gap RMSE per joint before and after), "
               "`gap_over_time.png` (the gap τ_m − τ_EL over time per joint, before and after), "
               + ("`effect_contributions.png` (each effect's torque, RMS per joint, beside the gap), "
                  if r["effects"] else "")
               + "`residual_vs_velocity.png` and `residual_vs_position.png` (the gap against q̇ and q).", ""]
     return "\n".join(lines)
+
+
+def _payload_lines(effect: dict) -> list[str]:
+    """A payload's lines in the effects list: what it is, its mass with the 95 % half-width (the gains' share said),
+    and each consistency claim as checked (``plausibility.flange_change``)."""
+    params, width = effect["parameters"], effect["ci95"].get("mass")
+    gains = params.get("mass_gain_ci95")
+    lines = [f"- **{params['kind']}**: mass change {params['mass_change']:+.3f}"
+             f"{'' if width is None else f' ± {width:.3f}'} kg (95 %"
+             + ("" if gains is None else f", of which ±{gains:.3f} kg from the drive gains") + "; flange link "
+             f"{params['flange_link_mass_urdf']:.3f} → {params['flange_link_mass_total']:.3f} kg, "
+             f"{'physically consistent' if params['flange_link_consistent'] else 'NOT physically consistent'})"]
+    if params.get("payload_consistent") is not None:
+        eigen = ", ".join(f"{v:.2g}" for v in params["inertia_eigenvalues"])
+        lines.append(f"  - as a body of its own: {'consistent' if params['payload_consistent'] else 'NOT consistent'} "
+                     f"(principal moments about its centre {eigen} kg·m²)")
+    return lines
+
+
+def drive_gains_section(gains: dict, joint_names: Sequence[str]) -> list[str]:
+    """report.md's drive gains: measured against a known load (each with its 95 % interval, and what the calibration
+    read of the load), or unidentified, with how far they may move a payload's mass."""
+    lines = ["## Drive gains", ""]
+    load, bound = gains.get("calibrated_with"), gains["prior"]
+    if load is None:
+        return lines + [
+            f"Unidentified: τ_m is {gains['torque_measurement']}, and free motion cannot tell a drive gain from the "
+            f"links' inertia (they look alike). A gain error within the prior |1 − g| ≤ {bound:.0%} scales a "
+            f"payload's torque one to one, so a payload's mass read with this model may be off by up to "
+            f"±{gains['mass_share']:.0%} (its interval carries it). To measure the gains, record the same kind of "
+            "motion with a known mass at the flange and pass `--known-load MASS BAG` (docs/walkthrough.md)."]
+    cells = ", ".join(f"{name} {g:.3f} ± {h:.3f}{'' if ok else ' (not identified: the prior)'}"
+                      for name, g, h, ok in zip(joint_names, gains["gain"], gains["ci95"], gains["identified"]))
+    com = load.get("com")
+    where = ("" if com is None else
+             f"; its centre of mass {'as given' if load.get('com_given') else 'as the data read it'}: "
+             f"({', '.join(f'{c:.3f}' for c in com)})"
+             + ("" if load.get("com_given") else " ± (" + ", ".join(f"{c:.3f}" for c in load["com_ci95"]) + ")")
+             + " m in the flange frame")
+    return lines + [
+        f"Measured against a known load of {load['mass_kg']:g} kg ({load['source']}){where}. Gain per joint with its "
+        f"95 % half-width (a joint whose interval the data do not narrow below the prior ±{bound:.0%} is not "
+        f"identified by this recording): {cells}.", "",
+        f"A payload's mass read with this model carries these intervals (at most ±{gains['mass_share']:.1%} of it)."]
 
 
 def _priors_table(priors: dict) -> list[str]:
@@ -122,7 +165,7 @@ def augmentation(diag: Diagnosis, robot: RobotModel, robot_name: str = "") -> di
     return {"robot": robot_name, "joint_names": list(robot.joint_names), **against,
             "convention": "tau_m - tau_EL = sum over effects of design(q, qd, qdd, tau_m) @ theta "
                           "(kvark_ros.gap.effects.augmentation_gap)",
-            "effects": entries}
+            "drive_gains": diag.result["drive_gains"], "effects": entries}
 
 
 def write_outputs(diag: Diagnosis, robot: RobotModel, out: Path, robot_name: str = "",

@@ -63,6 +63,9 @@ class Priors:
         ``gap.priors.robot_priors``; an effect without one is bounded only by ``max_gain_error`` /
         ``max_joint_offset`` (drive gain, joint offset) or not at all.
     sources: where each bound comes from, for the report.
+    physics: |θ| beyond which a value is not that effect at all (a drive gain near zero, a ripple or an offset larger
+        than the joint's whole effort), from ``gap.priors.robot_priors``; what the data want beyond a prior is
+        offered only inside it (``admissible.beyond_priors``). An effect without one: no such bound.
     """
 
     max_gain_error: float | None = None
@@ -73,6 +76,7 @@ class Priors:
     scale: tuple[tuple[str, float], ...] = ()
     limits: Mapping[str, np.ndarray] = field(default_factory=dict)
     sources: Mapping[str, str] = field(default_factory=dict)
+    physics: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def gain_bound(self) -> float:
@@ -91,7 +95,9 @@ class Priors:
 @dataclass(frozen=True, eq=False)
 class Signals:
     """Samples of one or more motions: q, q̇, q̈, smoothed τ_m, gap (T, n); payload regressor
-    (T, n, 10) in the flange frame; position sensitivity ∂τ_EL/∂q (T, n, n)."""
+    (T, n, 10) in the flange frame; position sensitivity ∂τ_EL/∂q (T, n, n); the other links' regressor; and, with a
+    known-load recording among the motions, the regressor (T, n, p) of that load's unknown parameters, zero on the
+    samples without it (``gap.known_load``), else None."""
 
     q: np.ndarray
     qd: np.ndarray
@@ -101,6 +107,7 @@ class Signals:
     payload_regressor: np.ndarray
     position_jacobian: np.ndarray
     link_regressor: np.ndarray
+    known_load: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.q)
@@ -108,7 +115,8 @@ class Signals:
     def take(self, index: np.ndarray) -> "Signals":
         return Signals(*(getattr(self, f)[index] for f in ("q", "qd", "qdd", "tau_m", "gap",
                                                             "payload_regressor", "position_jacobian",
-                                                            "link_regressor")))
+                                                            "link_regressor")),
+                       known_load=None if self.known_load is None else self.known_load[index])
 
 
 def flange_parameter_map(robot: RobotModel) -> tuple[int, np.ndarray]:
@@ -272,9 +280,9 @@ def theta_split(terms: Sequence[Term], theta: np.ndarray) -> list[np.ndarray]:
     return [theta[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
 
 
-def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None, gain_bound: float) -> tuple[dict, dict]:
-    """Parameters in physical units and their 95 % half-widths (delta method for derived ones); ``gain_bound``:
-    |1 − g| of the drives' gain prior, which a payload's mass is read through (``payload_parameters``)."""
+def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None) -> tuple[dict, dict]:
+    """Parameters in physical units and their 95 % half-widths of the fit (delta method for derived ones; a payload's
+    mass also carries the drives' gains, added by ``gap.diagnosis_result`` with ``known_load.gain_width``)."""
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None)) if cov is not None else np.full(len(theta), np.nan)
     half = 1.96 * sd
     if term.name == "payload":
@@ -282,7 +290,7 @@ def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None, g
             jac = np.zeros((10, term.size))
             jac[0, 0], jac[1:4, 0], jac[4:, 1:] = 1.0, term.fixed_com, np.eye(6)
             cov = None if cov is None else jac @ cov @ jac.T
-        return payload_parameters(term.full_theta(theta), cov, gain_bound)
+        return payload_parameters(term.full_theta(theta), cov)
     if term.name == "link_inertia":     # per link, joint frame: Δm kg, Δ(m c) kg·m, ΔI kg·m² about the origin
         values, widths = theta.reshape(-1, 10), half.reshape(-1, 10)
         return ({"mass_change": values[:, 0].tolist(), "first_moment_change": values[:, 1:4].tolist(),
@@ -304,13 +312,12 @@ def physical_parameters(term: Term, theta: np.ndarray, cov: np.ndarray | None, g
     return params, {key: widths[:, 0].tolist()}
 
 
-def payload_parameters(theta: np.ndarray, cov: np.ndarray | None, gain_bound: float) -> tuple[dict, dict]:
-    """Mass, CoM (flange frame) and inertia about the CoM ``[ixx, iyy, izz, ixy, ixz, iyz]`` of a payload change.
-    Its physical consistency is that of the flange link it changes (``plausibility.flange_change``).
-
-    The mass's 95 % half-width adds ``gain_bound`` · |m| to the fit's in quadrature: the payload's torque is measured
-    through the drives' gains g, which the data cannot tell from its mass (g m fits as well), so a gain error the
-    calibration left, within |1 − g| ≤ ``gain_bound``, moves the mass by as much; the CoM, a ratio, is not moved."""
+def payload_parameters(theta: np.ndarray, cov: np.ndarray | None) -> tuple[dict, dict]:
+    """Mass, CoM (flange frame) and inertia about the CoM ``[ixx, iyy, izz, ixy, ixz, iyz]`` of a payload change, and
+    the fit's 95 % half-widths of mass and CoM. Its physical consistency is checked on the flange link it changes and
+    on itself (``plausibility.flange_change``). The payload's torque is measured through the drives' gains, which the
+    data cannot tell from its mass (g m fits as well): ``gap.diagnosis_result`` adds their share to the mass's
+    half-width (``known_load.gain_width``); the CoM, a ratio, is not moved by them."""
     m, h = float(theta[0]), np.asarray(theta[1:4], dtype=float)
     com = h / m
     ixx, ixy, iyy, ixz, iyz, izz = theta[4:10]
@@ -323,7 +330,7 @@ def payload_parameters(theta: np.ndarray, cov: np.ndarray | None, gain_bound: fl
               "inertia_eigenvalues": eig.tolist()}
     ci: dict[str, Any] = {}
     if cov is not None:
-        ci["mass"] = float(np.hypot(1.96 * np.sqrt(max(cov[0, 0], 0.0)), gain_bound * m))
+        ci["mass"] = 1.96 * float(np.sqrt(max(cov[0, 0], 0.0)))
         com_ci = []
         for i in range(3):
             grad = np.zeros(10)

@@ -30,7 +30,12 @@ def long_run_covariance(scores: np.ndarray) -> np.ndarray:
 
 
 class Fitter:
-    """Bounded weighted least squares of the gap on a set of terms, within ``priors``."""
+    """Bounded weighted least squares of the gap on a set of terms, within ``priors``.
+
+    ``nuisance``: terms fitted with every set but never selected, reported or written (the unknown centre of mass and
+    inertia of a known-load calibration's load, ``gap.known_load``); their parameters follow the terms' in θ, G⁻¹ and
+    the covariance, so a term's slice is where it always was. ``forced``: terms every selection starts from and
+    keeps (``gap.selection``: a known-load calibration's drive gains)."""
 
     def __init__(self, train: Signals, held: Signals, weights: np.ndarray, priors: Priors) -> None:
         self.train, self.held, self.w, self.priors = train, held, weights, priors
@@ -41,6 +46,8 @@ class Fitter:
         self.flange_map = np.eye(10)                    # flange frame → that joint frame (payload θ)
         self.links: list[np.ndarray] = []               # URDF parameters of the other links (joint frames)
         self.dropped: set[tuple[str, tuple, int]] = set()  # (effect, variant, joint or −1) dropped at its prior
+        self.nuisance: tuple[Term, ...] = ()
+        self.forced: tuple[Term, ...] = ()
         self.t, self.n = train.gap.shape
         self._cache: dict = {}
 
@@ -74,12 +81,13 @@ class Fitter:
 
     def fit(self, terms: Sequence[Term]) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
         """(θ, G⁻¹, train residual, held-out residual); G⁻¹ (p, p), the inverse of the weighted normal matrix with
-        the priors, is the bread of ``covariance``.
+        the priors, is the bread of ``covariance``. θ and G⁻¹ end with the ``nuisance`` terms' parameters.
 
         Bounded weighted least squares on the normal equations: with G = AᵀW²A (+ the priors' 1/σ² on the
         diagonal) = RᵀR and c = AᵀW²b, ‖W(Aθ − b)‖² + ‖θ/σ‖² = ‖Rθ − R⁻ᵀc‖² + const, so BVLS solves a
         p × p problem built from cached blocks instead of a QR of the stacked T·n × p design.
         """
+        terms = [*terms, *self.nuisance]
         if not terms:
             return np.zeros(0), None, self.train.gap.copy(), self.held.gap.copy()
         gram = np.block([[self._normal_blocks(one, other) for other in terms] for one in terms])
@@ -124,7 +132,7 @@ class Fitter:
         95 % intervals of a payload's mass that held the true mass on 11 of 30 simulated robots."""
         if inverse is None:
             return None
-        design = np.concatenate([self.design(term)[0] for term in terms], axis=2)
+        design = np.concatenate([self.design(term)[0] for term in [*terms, *self.nuisance]], axis=2)
         scores = np.einsum("tjp,j,tj->tp", design, np.square(self.w), r_tr, optimize=True)
         return inverse @ long_run_covariance(scores) @ inverse
 

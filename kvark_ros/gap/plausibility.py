@@ -89,8 +89,9 @@ def plausibility_warnings(terms: Sequence[Term], thetas: Sequence[np.ndarray], p
 
 
 def beyond_prior_warning(record: dict, priors: Priors, joint_names: Sequence[str]) -> str:
-    """The sentence of one ``admissible.beyond_priors`` record: which effect wants which value beyond which prior, what
-    it would explain, the flag that allows it."""
+    """The sentence of one ``admissible.beyond_priors`` record: which effect wants which value, how far beyond which
+    prior (× its bound), what it would explain, its weaker look-alikes, and what to change: the flag that allows it
+    (for a drive gain where τ_m is not a link-side sensor's, also the known-load calibration that measures it)."""
     name, bound, wanted = record["effect"], record["bound"], record["wanted"]
     where = "" if record["joint"] < 0 else f" on {joint_names[record['joint']]}"
     if name == "drive_gain":
@@ -101,19 +102,19 @@ def beyond_prior_warning(record: dict, priors: Priors, joint_names: Sequence[str
         want = f"{wanted:.3g} {UNITS[name]}"
     helped = ", ".join(f"{joint_names[j]} {b:.3f} → {a:.3f}" for j, b, a in zip(
         record["joints_helped"], record["held_out_before"], record["held_out_after"]))
-    weaker = "; ".join(f"{other['effect']} ({other['wanted']:.3g} {UNITS[other['effect']]} against "
-                       f"{_bound(other['effect'], other['bound'])}, gap → "
+    weaker = "; ".join(f"{other['effect']} ({other['wanted']:.3g} {UNITS[other['effect']]}, {other['ratio']:.1f}× "
+                       f"its prior {_bound(other['effect'], other['bound'])}, gap → "
                        f"{', '.join(f'{a:.3f}' for a in other['held_out_after'])})"
                        for other in record.get("look_alikes", []))
-    if record["ratio"] > FAR_BEYOND:
-        return (f"the gap{where} follows {name} with {want}, {record['ratio']:.1f}× its prior {_bound(name, bound)}: "
-                f"not a plausible {name} (it would cut the held-out gap (N·m) of {helped}); an effect the library "
-                "lacks is seen through it" + (f". Weaker look-alikes beyond their priors: {weaker}" if weaker else ""))
-    return (f"{name}{where} needs {want}, beyond its prior {_bound(name, bound)} "
-            f"({priors.sources.get(name, 'prior')}); it would cut the held-out gap (N·m) of {helped}. "
-            + (f"Weaker look-alikes, beyond their priors too: {weaker}. " if weaker else "")
+    far = (f", far beyond it: check the robot's {name.replace('_', ' ')} before widening it"
+           if record["ratio"] > FAR_BEYOND else "")
+    measure = (" or measure the gains with a known mass at the flange (--known-load MASS BAG)"
+               if name == "drive_gain" and priors.torque_measurement != "link_torque_sensor" else "")
+    return (f"{name}{where} needs {want}, {record['ratio']:.1f}× its prior {_bound(name, bound)} "
+            f"({priors.sources.get(name, 'prior')}){far}; it would cut the held-out gap (N·m) of {helped}. "
+            + (f"Look-alikes that explain less, beyond their priors too: {weaker}. " if weaker else "")
             + "Not accepted, and no look-alike outside its own prior stands in for it: if the value is physical, "
-            f"pass {_flag(name, wanted, bound)}; otherwise an effect the library lacks is seen through it")
+            f"pass {_flag(name, wanted, bound)}{measure}; otherwise an effect the library lacks is seen through it")
 
 
 def prior_summary(result: Mapping[str, Any]) -> dict[str, Any]:
@@ -134,14 +135,21 @@ def prior_summary(result: Mapping[str, Any]) -> dict[str, Any]:
 
 def flange_change(flange: np.ndarray, flange_map: np.ndarray, theta: np.ndarray) -> dict:
     """The payload effect θ (10,) in the flange frame as a change of the flange link (``flange``: its URDF
-    parameters, joint frame; ``flange_map``: flange → joint frame): kind, mass change, total mass and whether the
-    changed link is physically consistent (``core.estimation.payload.inertia_problem``, the check the selection
-    applies)."""
+    parameters, joint frame; ``flange_map``: flange → joint frame): kind, mass change, total mass, and each
+    consistency claim checked on what it names (``core.estimation.payload.inertia_problem``): the changed flange
+    link (``flange_link_consistent``, the check the selection applies), the payload as a body of its own (positive
+    mass: ``payload_consistent``, its inertia about its centre positive semi-definite; None for a tool mismatch, which
+    is no body), and ``physically_consistent`` for both. A payload whose own inertia is not a body's is a correction of
+    the flange link, not a tool: the report says so."""
     total = flange + flange_map @ theta
+    link = inertia_problem(total) is None
+    own = None if theta[0] <= 0.0 else inertia_problem(theta) is None
     kind = ("tool mismatch: the robot's flange link is lighter than the URDF's (its tool is not the URDF's)"
-            if theta[0] < 0.0 else "unmodelled payload or tool at the flange")
+            if theta[0] < 0.0 else "unmodelled payload or tool at the flange" if own
+            else "a change of the flange link (its own inertia is not a body's: not a tool or load by itself)")
     return {"kind": kind, "mass_change": float(theta[0]), "flange_link_mass_urdf": float(flange[0]),
-            "flange_link_mass_total": float(total[0]), "physically_consistent": inertia_problem(total) is None}
+            "flange_link_mass_total": float(total[0]), "flange_link_consistent": link, "payload_consistent": own,
+            "physically_consistent": link and own is not False}
 
 
 def flange_mass_regrouping(s: Signals, robot: RobotModel) -> dict | None:

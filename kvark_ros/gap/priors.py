@@ -34,6 +34,10 @@ Per joint j, with s the measurement's share (``MEASUREMENT_WIDTHS``):
   per link (CAD masses miss cables, covers and grease by tens of per cent, CoMs by centimetres); the second
   moments keep their Gaussian prior toward the URDF and physical consistency.
 
+Beyond a prior lies what the data may still want (``admissible.beyond_priors`` offers it, with the flag); beyond
+physics lies what no drive does (``physics``: |1 − g| ≤ ``PHYSICAL_GAIN_ERROR``, an offset, ripple or friction within
+the joint's effort limit): that is never offered as an explanation.
+
 A URDF without an effort limit (0 or ∞) leaves the effort-scaled bounds of that joint open, and says so.
 ``--prior EFFECT=FACTOR`` scales one effect's bounds (gains and offsets: ``--max-gain-error``, ``--max-joint-offset``).
 """
@@ -61,7 +65,12 @@ LINK_COM_SHIFT = 0.05        # m, and its centre of mass by 5 cm
 POSTURES = 256               # sampled postures of the payload bound
 # The flag that widens each effect's prior (the others: --prior EFFECT=FACTOR).
 FLAGS = {"drive_gain": "--max-gain-error", "joint_offset": "--max-joint-offset"}
-FAR_BEYOND = 3.0             # a value more than 3× its prior's bound is not that effect: no flag is suggested
+FAR_BEYOND = 3.0             # a value more than 3× its prior's bound is far beyond it: the report says so
+# Physics, not priors: a torque constant off by half is a wrong drive configuration (gear ratio, units), not a
+# calibration error, and a gain near zero is a joint without torque; an offset, ripple or friction larger than the
+# joint's whole effort limit cannot be carried by its drive.
+PHYSICAL_GAIN_ERROR = 0.5
+PHYSICAL_EFFORT_SHARE = 1.0
 # Units of a bound, for the report.
 UNITS = {"drive_gain": "(1 − g, absolute)", "torque_offset": "N·m", "position_ripple": "N·m (each of sin, cos)",
          "coulomb_friction": "N·m", "stribeck_friction": "N·m", "viscous_friction": "N·m·s/rad",
@@ -158,12 +167,16 @@ def robot_priors(robot: RobotModel, priors: Priors) -> Priors:
     for name, factor in priors.scale:
         limits[name] = limits[name] * factor
         sources[name] += f", × {factor:g} (--prior)"
+    physics = {"drive_gain": np.full(robot.n, PHYSICAL_GAIN_ERROR),
+               **{name: PHYSICAL_EFFORT_SHARE * effort for name in ("torque_offset", "position_ripple",
+                                                                   "coulomb_friction", "stribeck_friction")},
+               "viscous_friction": PHYSICAL_EFFORT_SHARE * effort / speed}
     if not np.all(np.isfinite(effort)):
         missing = ", ".join(robot.joint_names[j] for j in np.flatnonzero(~np.isfinite(effort)))
         for name in ("coulomb_friction", "viscous_friction", "stribeck_friction", "armature", "torque_offset",
                      "position_ripple"):
             sources[name] += f" (no effort limit in the URDF for {missing}: open there)"
-    return replace(priors, limits=limits, sources=sources)
+    return replace(priors, limits=limits, sources=sources, physics=physics)
 
 
 def suggested_flag(name: str, wanted: float, bound: float) -> str:

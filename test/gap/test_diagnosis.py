@@ -14,6 +14,7 @@ pytest.importorskip("mujoco")
 from kvark_ros.core.config import load_config  # noqa: E402
 from kvark_ros.core.estimation.robot_model import RobotModel  # noqa: E402
 from kvark_ros.gap import diagnose as gap_cli  # noqa: E402
+from kvark_ros.gap import selection  # noqa: E402
 from kvark_ros.core.estimation.augmentation import load_augmentation, parse_augmentation  # noqa: E402
 from kvark_ros.gap.diagnose import diagnose, write_outputs  # noqa: E402
 from kvark_ros.gap.diagnosis_report import augmentation  # noqa: E402
@@ -387,7 +388,7 @@ def test_every_start_begins_from_the_urdf_priors_and_the_result_is_the_chosen_st
     itself had 0.23.
     Every start must begin from the URDF's priors, and the final fit must be the chosen start's."""
     starts, ends = [], []
-    greedy = gap_cli._greedy
+    greedy = selection.greedy
 
     def recording(fitter, *args, **kwargs):
         starts.append(dict(fitter.prior_scale))
@@ -395,10 +396,10 @@ def test_every_start_begins_from_the_urdf_priors_and_the_result_is_the_chosen_st
         ends.append((found, dict(fitter.prior_scale)))
         return found
 
-    monkeypatch.setattr(gap_cli, "_greedy", recording)
+    monkeypatch.setattr(selection, "greedy", recording)
     diag = diagnose(robots["panda"], [estimator_inputs(runs[("panda", "realistic")])], log=lambda _: None,
                     priors=Priors())
-    assert len(starts) == gap_cli.STARTS
+    assert len(starts) == selection.STARTS
     tightened = [any(not np.array_equal(end[name], starts[0][name]) for name in end) for _, end in ends]
     assert any(tightened)                    # some start did tighten a prior: the case this test is about
     for begun in starts[1:]:

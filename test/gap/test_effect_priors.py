@@ -17,10 +17,11 @@ from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.gap.admissible import at_bounds, prior_use
 from kvark_ros.gap.admissible import consistent
-from kvark_ros.gap.diagnose import HOLDOUT, _prior_scale, body_fitter, diagnose, payload_first, prepare
+from kvark_ros.gap.diagnose import HOLDOUT, _prior_scale, body_fitter, diagnose, prepare
 from kvark_ros.gap.effects import Priors, Term
 from kvark_ros.gap.plausibility import plausibility_warnings
 from kvark_ros.gap.priors import ACCELERATION_TIME, MEASUREMENT_WIDTHS, robot_priors
+from kvark_ros.gap.selection import payload_first
 
 
 @pytest.fixture(scope="module")

@@ -33,7 +33,12 @@ UR5 150/28 N·m, UR10 330/150/54 N·m), so an effect scales with the size of its
   N·m·s/rad; encoders 2^19 (Panda) / 2^18 (UR) counts per revolution;
 - payload of the payload scene: mass ``U(0.5, 3)`` kg, a solid cylinder of radius ``U(0.03, 0.06)`` m and
   length ``U(0.05, 0.15)`` m along the flange z axis, its centre ``U(0, 0.1)`` m + half its length beyond
-  the grasp point (Panda: the fingertips, 0.1 m past the flange), off-axis by up to 2 cm.
+  the grasp point (Panda: the fingertips, 0.1 m past the flange), off-axis by up to 2 cm;
+- known load of the calibration recording, motor-current arms only (``MOTOR_CURRENT_ARMS``: their drive gains are
+  what free motion cannot measure): a steel cylinder of mass ``U(2, 4)`` kg (weighed: the user knows it, not its
+  centre), radius 4 cm, length ``U(0.05, 0.1)`` m on the flange axis, its base ``U(0, 0.03)`` m past the flange;
+  drawn from its own stream ``default_rng([seed, index, KNOWN_LOAD_STREAM])``, so the robots themselves are those
+  drawn before it existed.
 """
 from __future__ import annotations
 
@@ -74,13 +79,20 @@ PAYLOAD_RADIUS = (0.03, 0.06)
 PAYLOAD_LENGTH = (0.05, 0.15)
 PAYLOAD_GAP = (0.0, 0.1)
 PAYLOAD_LATERAL = 0.02
+MOTOR_CURRENT_ARMS = ("ur5", "ur10")             # τ_m = gain × current (config robot_model.torque_measurement)
+KNOWN_LOAD_MASS = (2.0, 4.0)                     # kg
+KNOWN_LOAD_RADIUS = 0.04                         # m
+KNOWN_LOAD_LENGTH = (0.05, 0.1)                  # m
+KNOWN_LOAD_GAP = (0.0, 0.03)                     # m, flange to the cylinder's base
+KNOWN_LOAD_STREAM = 1                            # the known load's own random stream (see the module docstring)
 
 
 @dataclass(frozen=True)
 class PopulationRobot:
     """One drawn robot: its arm class (``ARM_CLASSES``), the simulator's robot setup name, its control rate Hz,
     the payload mass of its payload scene (kg), the plant mapping ``load_plant`` accepts (without the payload:
-    training and the contact and collision scenes carry none), the payload's plant entry, and a description."""
+    training and the contact and collision scenes carry none), the payload's plant entry, a description, and the
+    known load of its calibration recording (a payload plant entry; None on arms with link-side torque sensors)."""
 
     index: int
     seed: int
@@ -91,10 +103,17 @@ class PopulationRobot:
     plant: dict[str, Any]
     payload: dict[str, Any]
     description: str
+    known_load: dict[str, Any] | None = None
 
     def payload_plant(self) -> dict[str, Any]:
         """The plant mapping of the payload scene: ``plant`` carrying ``payload``."""
         return {**self.plant, "payload": self.payload}
+
+    def known_load_plant(self) -> dict[str, Any]:
+        """The plant mapping of the known-load calibration recording: ``plant`` carrying ``known_load``."""
+        if self.known_load is None:
+            raise ValueError(f"{self.label} has no known-load recording (link-side torque sensors)")
+        return {**self.plant, "payload": self.known_load}
 
     @property
     def label(self) -> str:
@@ -165,9 +184,20 @@ def draw_robot(index: int, seed: int) -> PopulationRobot:
                                                round(com_z, 4)],
                "inertia": _list(np.array(body.inertia), 9)}
     gains = np.array(plant["drive_gain"])
+    known = _known_load(seed, index) if arm in MOTOR_CURRENT_ARMS else None
     description = (f"{arm} at {rate:g} Hz, payload {mass:.2f} kg, Coulomb {coulomb.min():.2f}-{coulomb.max():.2f} "
-                   f"N·m, drive gain {gains.min():.3f}-{gains.max():.3f}, armature {armature.max():.3f} kg·m² max")
-    return PopulationRobot(index, seed, arm, arm, rate, round(mass, 4), plant, payload, description)
+                   f"N·m, drive gain {gains.min():.3f}-{gains.max():.3f}, armature {armature.max():.3f} kg·m² max"
+                   + ("" if known is None else f", known load {known['mass']:.2f} kg"))
+    return PopulationRobot(index, seed, arm, arm, rate, round(mass, 4), plant, payload, description, known)
+
+
+def _known_load(seed: int, index: int) -> dict[str, Any]:
+    """The known load of robot ``index`` of population ``seed`` as a plant payload entry (module docstring)."""
+    rng = np.random.default_rng([seed, index, KNOWN_LOAD_STREAM])
+    mass, length = float(rng.uniform(*KNOWN_LOAD_MASS)), float(rng.uniform(*KNOWN_LOAD_LENGTH))
+    body = cylinder_payload(mass, KNOWN_LOAD_RADIUS, length, float(rng.uniform(*KNOWN_LOAD_GAP)) + 0.5 * length)
+    return {"mass": round(mass, 4), "com": [0.0, 0.0, round(body.com[2], 4)],
+            "inertia": _list(np.array(body.inertia), 9)}
 
 
 def draw_population(count: int, seed: int) -> list[PopulationRobot]:

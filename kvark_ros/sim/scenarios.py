@@ -386,7 +386,8 @@ def _resolve_plant(setup: RobotSetup, plant: PlantSpec | str | os.PathLike[str] 
 
 def run_scenario(robot: str, scenario: str, seed: int = 1, duration: float = 10.0,
                  plant: PlantSpec | str | os.PathLike[str] | None = None,
-                 progress: bool | None = None, start_time: float | None = None) -> SimulationOutput:
+                 progress: bool | None = None, start_time: float | None = None,
+                 motion_seed: int | None = None) -> SimulationOutput:
     """Simulate one scenario and return the recording with its ground truth.
 
     excitation: an optimised eq.-24/25 trajectory under joint tracking control;
@@ -397,6 +398,9 @@ def run_scenario(robot: str, scenario: str, seed: int = 1, duration: float = 10.
     plant: a PlantSpec, a plant-file path, or None for the robot's default plant file
     (``kvark_ros/sim/plants/<robot>_default.yaml``). Deterministic for a seed, which also sets
     the plant clock at the start (module docstring) unless ``start_time`` (s since power-on, ≥ 0) is given.
+    ``motion_seed``: the seed whose motion to repeat (the trajectory of this scenario and duration under that seed),
+    with this seed's noise and clock: a run carrying a known load along the same trajectory as an unloaded one, as a
+    drive-gain calibration records them (Mamedov et al. 2020).
     """
     wall_start = time.perf_counter()
     setup = robot_setup(robot)
@@ -409,6 +413,8 @@ def run_scenario(robot: str, scenario: str, seed: int = 1, duration: float = 10.
     spec = _resolve_plant(setup, plant)
     trajectory_seed, scenario_seed, noise_seed, clock_seed = np.random.SeedSequence(
         [seed, SCENARIOS.index(scenario)]).spawn(4)
+    if motion_seed is not None:
+        trajectory_seed = np.random.SeedSequence([motion_seed, SCENARIOS.index(scenario)]).spawn(4)[0]
     drawn = float(np.random.default_rng(clock_seed).uniform(0.0, SESSION_S))
     start_time = drawn if start_time is None else float(start_time)
     scenario_rng = np.random.default_rng(scenario_seed)
@@ -438,9 +444,10 @@ def run_scenario(robot: str, scenario: str, seed: int = 1, duration: float = 10.
 
 def simulate(robot: str, scenario: str, seed: int = 1, duration: float = 10.0,
              plant: PlantSpec | str | os.PathLike[str] | None = None,
-             progress: bool | None = None, start_time: float | None = None) -> RecordedRun:
+             progress: bool | None = None, start_time: float | None = None,
+             motion_seed: int | None = None) -> RecordedRun:
     """The recording of ``run_scenario`` (what a bag holds); same arguments."""
-    return run_scenario(robot, scenario, seed, duration, plant, progress, start_time).run
+    return run_scenario(robot, scenario, seed, duration, plant, progress, start_time, motion_seed).run
 
 
 def _pushes(link: str, duration: float, rng: np.random.Generator) -> list[Push]:

@@ -27,9 +27,9 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 import numpy as np
 
 from kvark_ros.core.config import ConfigError
-from kvark_ros.core.estimation.calibration import COVERAGE
 from kvark_ros.core.files import staged_directory, write_text_atomically
-from kvark_ros.tools.acceptance import COVERAGE_RANGE, ORACLE_LIMIT, RMSE_LIMIT
+from kvark_ros.tools.acceptance import (acceptance_lines, contact_delay_lines, distribution, flange_mass_line,
+                                        prior_line, tally)
 from kvark_ros.tools.sim_bags import AUGMENTED_OBSERVERS, TEST_SCENARIOS, BenchmarkPlan
 
 if TYPE_CHECKING:
@@ -40,21 +40,16 @@ NOMINAL_OBSERVERS = ("kvark", "kf", "momentum", "oracle")
 # jobs at load 4-6: a 500 Hz robot ~330 s, a 100/125 Hz one ~100 s); quick: `--population 3 --seed 1000` 2.3 min.
 FULL = BenchmarkPlan(train_seeds=(11, 12, 13), train_duration=15.0, test_duration=10.0)
 QUICK = BenchmarkPlan(train_seeds=(11, 12), train_duration=10.0, test_duration=8.0)
-ORACLE_QUALIFIES = 0.7      # the 0.8 rules apply to cells where the oracle reaches ≤ 0.7 × kf
-RMSE_RULES = (("kf", RMSE_LIMIT), ("momentum", RMSE_LIMIT))
-JOINT_COVERAGE_MEDIAN = COVERAGE_RANGE[0]   # per joint no upper bound: the static band is honest at rest
-COVERAGE_WORST_DECILE = 0.85
-FLANGE_MASS_TOLERANCE = 0.10   # the identified payload mass within 10 % of the drawn one
 SEED_STRIDE = 100000        # simulation seeds of robot i of population S: S·SEED_STRIDE + 200·i + …
 CONTACT_KEYS = ("onsets", "detection_delay_from_band", "within_band_onsets", "missed_beyond_band")
 
 
 def _figures(metrics: Mapping[str, Any]) -> dict[str, Any]:
-    """The figures kept per observer and scene: RMSE, coverage and the contact flag's onsets counted from the static
-    band (``tools.metrics.contact_metrics``)."""
+    """The figures kept per observer and scene: RMSE, coverage, the interval score and the contact flag's onsets
+    counted from the static band (``tools.metrics.contact_metrics``)."""
     contact = metrics.get("contact") or {}
     return {**{key: metrics.get(key) for key in ("joint_rmse_mean", "joint_rmse", "coverage95", "coverage95_moving",
-                                                 "coverage95_per_joint")},
+                                                 "coverage95_per_joint", "interval_score95")},
             "contact": {key: contact.get(key) for key in CONTACT_KEYS}}
 
 
@@ -84,8 +79,9 @@ def run_robot(robot: PopulationRobot, plan: BenchmarkPlan, folder: str) -> dict[
     from kvark_ros.core.estimation.robot_model import RobotModel
     from kvark_ros.core.learning.training import train_model
     from kvark_ros.gap.diagnose import train_on_diagnosis
+    from kvark_ros.gap.known_load import KnownLoad
     from kvark_ros.io.alignment import read_inputs
-    from kvark_ros.tools.sim_bags import simulate_bags
+    from kvark_ros.tools.sim_bags import simulate_bags, simulate_known_load
     from kvark_ros.tools.evaluate import Setup, evaluate_task
 
     _pin_to_core()
@@ -117,15 +113,22 @@ def run_robot(robot: PopulationRobot, plan: BenchmarkPlan, folder: str) -> dict[
             for observer in NOMINAL_OBSERVERS:
                 scenes[name]["nominal"][observer] = _figures(evaluate_task(setup, str(bag.resolve()), observer).metrics)
         augmentation: dict[str, Any] = {}
+        known = None
+        if robot.known_load is not None:    # motor-current arms: the drive gains calibrated with a weighed mass
+            bag = simulate_known_load(robot.setup, plan, out / "bags", sim_seed, log, robot.known_load_plant())
+            known = KnownLoad(robot.known_load["mass"], None, [read_inputs(bag, config)[1]],
+                              f"{robot.known_load['mass']:g} kg on {bag.name}")
         try:
             _, augmentation = train_on_diagnosis(config, nominal, segments, out, baselines=False, seed=sim_seed,
-                                                 log=log)
+                                                 log=log, known_load=known)
+            augmentation["drive_gains"]["true"] = robot.plant["drive_gain"]
             augmented = Setup(str(config_path), str((out / "model_augmented").resolve()))
             for name, bag in test_bags.items():
                 for observer in AUGMENTED_OBSERVERS:
                     scenes[name]["augmented"][observer] = _figures(
                         evaluate_task(augmented, str(bag.resolve()), observer).metrics)
             augmentation["flange_mass"] = flange_mass(config, out, test_bags["payload"], robot.payload_kg, log)
+            augmentation["flange_mass"]["known_load"] = known is not None
         except Exception as exc:       # a diagnosis that fails leaves the nominal figures standing, and says why
             augmentation = {"error": f"{type(exc).__name__}: {exc}"}
             log(f"[population] diagnosis failed: {augmentation['error']}\n{traceback.format_exc()}")
@@ -133,7 +136,7 @@ def run_robot(robot: PopulationRobot, plan: BenchmarkPlan, folder: str) -> dict[
         (out / "log.txt").write_text("\n".join(map(str, lines)) + "\n")
     return {"robot": {"index": robot.index, "arm": robot.arm, "rate_hz": robot.rate_hz,
                       "payload_kg": robot.payload_kg, "description": robot.description, "label": robot.label,
-                      "plant": robot.plant, "payload": robot.payload},
+                      "plant": robot.plant, "payload": robot.payload, "known_load": robot.known_load},
             "augmentation": augmentation, "scenes": scenes, "seconds": round(time.perf_counter() - started, 1)}
 
 
@@ -164,17 +167,6 @@ def flange_mass(config: Any, folder: Path, payload_bag: Path, true_mass: float,
             "warnings": len(result.result["warnings"]), "priors": prior_summary(result.result)}
 
 
-def distribution(values: Sequence[float], higher_is_worse: bool = True) -> dict[str, float | int | None]:
-    """Median, 90th percentile and worst of ``values``; for a figure where lower is worse (coverage) the
-    "90th percentile" is the 10th: the value 90 % of the cells do better than, i.e. the worst decile's edge."""
-    data = np.asarray([v for v in values if v is not None and np.isfinite(v)], dtype=float)
-    if data.size == 0:
-        return {"median": None, "p90": None, "worst": None, "count": 0}
-    p90 = np.percentile(data, 90 if higher_is_worse else 10)
-    worst = data.max() if higher_is_worse else data.min()
-    return {"median": float(np.median(data)), "p90": float(p90), "worst": float(worst), "count": int(data.size)}
-
-
 def cells(robots: Sequence[Mapping[str, Any]], arm: str | None = None) -> list[dict[str, Any]]:
     """One row per robot × scene (of arm class ``arm``; None: every robot): the observers' figures, kvark's on the
     augmented model as ``kvark_aug`` (and kf/momentum as ``kf_aug``/``momentum_aug``) where the diagnosis ran."""
@@ -198,10 +190,13 @@ def _value(row: Mapping[str, Any], observer: str, key: str = "joint_rmse_mean") 
 
 
 def summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
-    """Distributions over the cells: each observer's joint RMSE (N·m) and kvark's coverage95, pooled and per joint."""
+    """Distributions over the cells: each observer's joint RMSE (N·m), kvark's and kf's mean 95 % interval score
+    (N·m) and kvark's coverage95, pooled and per joint."""
     out: dict[str, dict[str, Any]] = {}
     for observer in ("kvark", "kvark_aug", "kf", "kf_aug", "momentum", "momentum_aug", "oracle"):
         out[f"{observer} RMSE"] = distribution([_value(row, observer) for row in rows])
+    for observer in ("kvark", "kvark_aug", "kf", "kf_aug"):
+        out[f"{observer} interval score"] = distribution([_value(row, observer, "interval_score95") for row in rows])
     for observer in ("kvark", "kvark_aug"):
         out[f"{observer} coverage95"] = distribution([_value(row, observer, "coverage95") for row in rows], False)
         out[f"{observer} coverage95 moving"] = distribution(
@@ -209,176 +204,6 @@ def summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
         out[f"{observer} coverage95 per joint"] = distribution(
             [v for row in rows for v in (_value(row, observer, "coverage95_per_joint") or [])], False)
     return out
-
-
-def _verdict(ok: bool) -> str:
-    return "pass" if ok else "FAIL"
-
-
-def _pooled_coverage_line(label: str, pooled: Mapping[str, Any], moving: Mapping[str, Any]) -> str:
-    """Pooled coverage95 within ``COVERAGE_RANGE`` at the median and ≥ ``COVERAGE_WORST_DECILE`` at the worst decile.
-    Both lower bounds hold over every joint sample and over the samples in motion; the upper bound is read over the
-    samples in motion (cells without that figure: over every sample). At rest the static friction band spans any
-    torque the joint can hold, so those samples cover by construction: "no upper bound at rest", as for the per-joint
-    line (issue 28)."""
-    low, high = COVERAGE_RANGE
-    if not moving["count"]:
-        ok = low <= pooled["median"] <= high and pooled["p90"] >= COVERAGE_WORST_DECILE
-        return (f"- {label}: K-VARK coverage95 pooled: median {pooled['median']:.3f} ({low}-{high}), worst decile "
-                f"{pooled['p90']:.3f} (≥ {COVERAGE_WORST_DECILE}), worst {pooled['worst']:.3f} over "
-                f"{pooled['count']} cells: {_verdict(ok)}")
-    ok = (min(pooled["median"], moving["median"]) >= low and moving["median"] <= high
-          and min(pooled["p90"], moving["p90"]) >= COVERAGE_WORST_DECILE)
-    return (f"- {label}: K-VARK coverage95 pooled: median {pooled['median']:.3f} over every joint sample, "
-            f"{moving['median']:.3f} over those in motion ({low}-{high}; the upper bound in motion: at rest the "
-            f"static band is honest), worst decile {pooled['p90']:.3f} / {moving['p90']:.3f} "
-            f"(≥ {COVERAGE_WORST_DECILE}), worst {pooled['worst']:.3f} / {moving['worst']:.3f} over "
-            f"{pooled['count']} cells: {_verdict(ok)}")
-
-
-def _model_label(rows: Sequence[Mapping[str, Any]], model: str, suffix: str) -> str | None:
-    """How a line names the model of ``suffix`` over ``rows``: ``model``, with how many cells were diagnosed where a
-    diagnosis did not run on every robot (those read the nominal figures); None where it ran on none."""
-    diagnosed = sum(row.get(f"kvark{suffix}") is not None for row in rows)
-    if not diagnosed:
-        return None
-    if diagnosed == len(rows):
-        return model
-    return f"{model} ({diagnosed} of {len(rows)} cells diagnosed, nominal elsewhere)"
-
-
-def acceptance_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[str]:
-    """The acceptance checks over ``rows`` (robot × scene cells of ``group``), as pass/FAIL lines with the figures,
-    on the nominal model and on the augmented one (kvark_aug against kf_aug and momentum_aug, the nominal figures
-    where the diagnosis did not run; the nominal kf gates the cells: oracle ≤ 0.7 × kf). Ratios are taken per cell,
-    then their median: robots of different size pool."""
-    lines = []
-    qualifying = [row for row in rows if None not in (_value(row, "oracle"), _value(row, "kf"))
-                  and _value(row, "oracle") <= ORACLE_QUALIFIES * _value(row, "kf")]
-    for model, suffix in (("nominal", ""), ("augmented", "_aug")):
-        label = _model_label(rows, model, suffix)
-        if label is None:
-            lines.append(f"- {group}, {model}: no cell (the diagnosis did not run)")
-            continue
-        model = label
-
-        def fig(row: Mapping[str, Any], observer: str, key: str = "joint_rmse_mean") -> Any:
-            entry = row.get(observer + suffix) or row.get(observer)
-            return None if entry is None else entry.get(key)
-
-        for other, limit in RMSE_RULES:
-            ratios = [fig(row, "kvark") / fig(row, other) for row in qualifying
-                      if fig(row, "kvark") is not None and fig(row, other)]
-            if not ratios:
-                lines.append(f"- {group}, {model}: K-VARK / {other}: no cell of {len(rows)} has oracle ≤ "
-                             f"{ORACLE_QUALIFIES} × kf (not judged)")
-                continue
-            median = float(np.median(ratios))
-            lines.append(f"- {group}, {model}: median K-VARK / {other} joint RMSE = {median:.2f} over {len(ratios)} "
-                         f"of {len(rows)} cells with oracle ≤ {ORACLE_QUALIFIES} × kf (≤ {limit}: "
-                         f"{_verdict(median <= limit)})")
-        ratios = [fig(row, "kvark") / _value(row, "oracle") for row in rows
-                  if fig(row, "kvark") is not None and _value(row, "oracle")]
-        if ratios:
-            median = float(np.median(ratios))
-            lines.append(f"- {group}, {model}: median K-VARK / oracle joint RMSE = {median:.2f} over {len(ratios)} "
-                         f"cells (≤ {ORACLE_LIMIT}: {_verdict(median <= ORACLE_LIMIT)})")
-        joint = distribution([v for row in rows for v in (fig(row, "kvark", "coverage95_per_joint") or [])], False)
-        pooled = distribution([fig(row, "kvark", "coverage95") for row in rows], False)
-        moving = distribution([fig(row, "kvark", "coverage95_moving") for row in rows], False)
-        if joint["count"]:
-            ok = joint["median"] >= JOINT_COVERAGE_MEDIAN and joint["p90"] >= COVERAGE_WORST_DECILE
-            lines.append(f"- {group}, {model}: K-VARK coverage95 per joint: median {joint['median']:.3f} "
-                         f"(≥ {JOINT_COVERAGE_MEDIAN}), worst decile {joint['p90']:.3f} "
-                         f"(≥ {COVERAGE_WORST_DECILE}), worst {joint['worst']:.3f} over {joint['count']} "
-                         f"joint×cells: {_verdict(ok)}")
-        pairs = [(fig(row, "kvark", "coverage95"), fig(row, "kf", "coverage95")) for row in rows]
-        pairs = [(kvark, kf) for kvark, kf in pairs if kvark is not None and kf is not None]
-        if pairs:
-            below = [kf - kvark for kvark, kf in pairs if kvark < kf]
-            # kf above the nominal 95 % over-covers: there kvark is held to the nominal, not to kf's excess
-            honest = sum(kvark >= min(kf, COVERAGE) for kvark, kf in pairs)
-            lines.append(f"- {group}, {model}: K-VARK coverage95 at least kf's in {len(pairs) - len(below)} of "
-                         f"{len(pairs)} cells (short by at most {max(below, default=0.0):.4f}; at least min(kf's, "
-                         f"{COVERAGE}) in {honest}): {_verdict(not below)}")
-        if pooled["count"]:
-            lines.append(_pooled_coverage_line(f"{group}, {model}", pooled, moving))
-    return lines
-
-
-def _delays(rows: Sequence[Mapping[str, Any]], observer: str, suffix: str) -> tuple[list[float], int]:
-    """``observer``'s contact-flag delays (ms) counted from the moment each push exceeds the static band, over the
-    cells' onsets, and how many such pushes it never flagged; on the model of ``suffix``, the nominal figures where a
-    cell has none (its diagnosis did not run), as ``acceptance_lines`` reads them."""
-    entries = [(row.get(observer + suffix) or row.get(observer) or {}).get("contact") or {} for row in rows]
-    delays = [1e3 * delay for entry in entries for delay in (entry.get("detection_delay_from_band") or [])]
-    return delays, sum(entry.get("missed_beyond_band") or 0 for entry in entries)
-
-
-def contact_delay_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[str]:
-    """The contact flag from the moment the push exceeds the static band (issue 28; before that a sticking joint
-    holds the push and no measured quantity changes, docs/method.md §4.11), per model: K-VARK's delays over every
-    onset of the cells (median, 90th percentile, worst) and the pushes beyond the band it never flagged, against
-    kf's, which runs the same model, band and contact test with a fixed Σ_d. Pass: K-VARK no later at the median
-    and missing no more pushes (issue 17's "contact detection delay not worse")."""
-    lines = []
-    for model, suffix in (("nominal", ""), ("augmented", "_aug")):
-        label = _model_label(rows, model, suffix)
-        if label is None:
-            continue
-        model = label
-        (kvark, kvark_missed), (kf, kf_missed) = (_delays(rows, observer, suffix) for observer in ("kvark", "kf"))
-        pushes = len(kvark) + kvark_missed
-        if not pushes:
-            continue
-        mine, theirs = distribution(kvark), distribution(kf)
-        ok = kvark_missed <= kf_missed and (theirs["median"] is None or (
-            mine["median"] is not None and mine["median"] <= theirs["median"]))
-        lines.append(f"- {group}, {model}: contact flag after the push exceeds the static band: K-VARK median "
-                     f"{_cell(mine['median'], 0)} ms, p90 {_cell(mine['p90'], 0)}, worst {_cell(mine['worst'], 0)} "
-                     f"over {pushes} pushes, {kvark_missed} never flagged; kf median {_cell(theirs['median'], 0)} ms, "
-                     f"p90 {_cell(theirs['p90'], 0)}, {kf_missed} never flagged (K-VARK no later at the median and "
-                     f"missing no more: {_verdict(ok)})")
-    return lines
-
-
-def prior_line(robots: Sequence[Mapping[str, Any]], group: str) -> list[str]:
-    """No effect outside its prior without a warning (issue 28), over every diagnosis of ``robots``: the free-motion
-    calibration and the payload scene against it (``gap.plausibility.prior_summary``)."""
-    records = []
-    for result in robots:
-        augmentation = result.get("augmentation", {})
-        records += [record["priors"] for record in (augmentation, augmentation.get("flange_mass") or {})
-                    if "priors" in record]
-    if not records:
-        return []
-    largest = max((r["largest_prior_use"] for r in records if r["largest_prior_use"] is not None), default=None)
-    unwarned = [name for r in records for name in r["unwarned"]]
-    return [f"- {group}: effects against their priors over {len(records)} diagnoses (free motion, and the payload "
-            f"scene against the calibrated model): {sum(r['effects'] for r in records)} named, the largest using "
-            f"{'–' if largest is None else f'{largest:.0%}'} of its prior, {sum(len(r['at_bound']) for r in records)} "
-            f"at a bound (each a warning); {sum(r['beyond_priors'] for r in records)} explanations wanted beyond a "
-            f"prior (each a warning); outside a prior without a warning: {', '.join(unwarned) or 'none'}: "
-            f"{_verdict(not unwarned)}"]
-
-
-def flange_mass_line(robots: Sequence[Mapping[str, Any]], group: str) -> list[str]:
-    """The payload-mass check over ``robots`` (``flange_mass``): how many named the payload with its mass within
-    ``FLANGE_MASS_TOLERANCE``, the median relative error of those named, and how many of their 95 % intervals hold
-    the drawn mass (records written before the intervals were kept count as not holding it)."""
-    records = [r["augmentation"]["flange_mass"] for r in robots if "flange_mass" in r.get("augmentation", {})]
-    if not records:
-        return []
-    named = [record for record in records if record["named"]]
-    within = sum(record["relative_error"] <= FLANGE_MASS_TOLERANCE for record in named)
-    held = sum(abs(r["mass_kg"] - r["true_kg"]) <= (r.get("ci95_kg") or 0.0) for r in named)
-    errors = ", ".join(f"{r['mass_kg']:.2f} ± {r.get('ci95_kg') or float('nan'):.2f} ({r['true_kg']:.2f})"
-                       for r in named) or "none"
-    median = f"median error {np.median([r['relative_error'] for r in named]):.0%}, " if named else ""
-    return [f"- {group}: payload named with its mass within {FLANGE_MASS_TOLERANCE:.0%} on {within} of "
-            f"{len(records)} robots (named on {len(named)}; {median}true mass inside the 95 % interval on {held}; "
-            f"identified ± 95 % (true), kg: {errors}): "
-            f"{_verdict(within == len(records))}"]
 
 
 def aggregate(robots: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
@@ -389,15 +214,11 @@ def aggregate(robots: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     for group in (*present, "pooled"):
         rows = cells(robots, None if group == "pooled" else group)
         members = [r for r in robots if group == "pooled" or r["robot"]["arm"] == group]
+        lines = [*acceptance_lines(rows, group), *contact_delay_lines(rows, group),
+                 *flange_mass_line(members, group), *prior_line(members, group)]
         groups[group] = {"robots": len({row["robot"] for row in rows}), "cells": len(rows),
-                         "distributions": summary(rows),
-                         "acceptance": [*acceptance_lines(rows, group), *contact_delay_lines(rows, group),
-                                        *flange_mass_line(members, group), *prior_line(members, group)]}
+                         "distributions": summary(rows), "acceptance": [*lines, tally(lines)]}
     return groups
-
-
-def _cell(value: float | None, decimals: int) -> str:
-    return "–" if value is None else f"{value:.{decimals}f}"
 
 
 def distribution_table(groups: Mapping[str, Any]) -> list[str]:
@@ -406,9 +227,21 @@ def distribution_table(groups: Mapping[str, Any]) -> list[str]:
     for group, entry in groups.items():
         for figure, dist in entry["distributions"].items():
             decimals = 3 if "coverage" in figure else 4
-            lines.append(f"| {group} | {figure} | {_cell(dist['median'], decimals)} | {_cell(dist['p90'], decimals)} "
-                         f"| {_cell(dist['worst'], decimals)} | {dist['count']} |")
+            lines.append(f"| {group} | {figure} | {cell(dist['median'], decimals)} | {cell(dist['p90'], decimals)} "
+                         f"| {cell(dist['worst'], decimals)} | {dist['count']} |")
     return lines
+
+
+def _gains(record: Mapping[str, Any] | None) -> str:
+    """A robot's drive gains as its calibration found them: measured with the known load (each ± its 95 %
+    half-width, the drawn gain after it), or unidentified (free motion, within ± the prior)."""
+    if not record:
+        return "–"
+    if record.get("calibrated_with") is None:
+        return f"unidentified (±{record['prior']:.0%})"
+    true = record.get("true") or [float("nan")] * len(record["gain"])
+    return ", ".join(f"{g:.3f} ± {h:.3f} ({t:.3f})" if ok else f"– ({t:.3f})"
+                     for g, h, ok, t in zip(record["gain"], record["ci95"], record["identified"], true))
 
 
 def write_report(out: Path, results: Mapping[str, Any]) -> None:
@@ -420,9 +253,9 @@ def write_report(out: Path, results: Mapping[str, Any]) -> None:
             f"and replayed on its own data. {results['workers']} worker(s), {results['seconds'] / 60:.1f} min.",
             "RMSE: joint RMSE (mean over joints), N·m; `_aug`: on the diagnosed (augmented) model. p90: the value "
             "90 % of the cells do better than (for coverage the 10th percentile).", "", "## Robots", "",
-            "| robot | plant | effects named by the diagnosis | held-out gap (N·m) | payload scene against the "
-            "diagnosed model: named (kg, drawn kg) | time (s) |",
-            "|---|---|---|---|---|---|"]
+            "| robot | plant | effects named by the diagnosis | held-out gap (N·m) | drive gains ± 95 % (drawn) | "
+            "payload scene against the diagnosed model: named (kg ± 95 %, drawn kg) | time (s) |",
+            "|---|---|---|---|---|---|---|"]
     for result in results["robots"]:
         augmentation = result["augmentation"]
         effects = ", ".join(augmentation.get("effects", [])) or augmentation.get("error", "none")
@@ -430,18 +263,18 @@ def write_report(out: Path, results: Mapping[str, Any]) -> None:
                else "–")
         record = augmentation.get("flange_mass")
         payload = ("–" if record is None else f"{', '.join(record['effects']) or 'nothing'} "
-                   f"({_cell(record['mass_kg'], 2)}, {record['true_kg']:.2f})")
+                   f"({cell(record['mass_kg'], 2)} ± {cell(record['ci95_kg'], 2)}, {record['true_kg']:.2f})")
         text.append(f"| {result['robot']['label']} | {result['robot']['description']} | {effects} | {gap} | "
-                    f"{payload} | {result['seconds']:.0f} |")
+                    f"{_gains(augmentation.get('drive_gains'))} | {payload} | {result['seconds']:.0f} |")
     text += ["", "## Distributions over robots × scenes", ""] + distribution_table(results["groups"])
     text += ["", "## Every cell, joint RMSE (N·m) and coverage95", "",
              "| robot | scene | kvark | kvark_aug | kf | kf_aug | momentum | oracle | cov95 kvark | cov95 kvark_aug |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for row in cells(results["robots"]):
-        rmse = " | ".join(_cell(_value(row, name), 4)
+        rmse = " | ".join(cell(_value(row, name), 4)
                           for name in ("kvark", "kvark_aug", "kf", "kf_aug", "momentum", "oracle"))
-        text.append(f"| {row['robot']} | {row['scene']} | {rmse} | {_cell(_value(row, 'kvark', 'coverage95'), 3)} | "
-                    f"{_cell(_value(row, 'kvark_aug', 'coverage95'), 3)} |")
+        text.append(f"| {row['robot']} | {row['scene']} | {rmse} | {cell(_value(row, 'kvark', 'coverage95'), 3)} | "
+                    f"{cell(_value(row, 'kvark_aug', 'coverage95'), 3)} |")
     text += ["", "## Acceptance checks", ""] + [line for entry in results["groups"].values()
                                                for line in entry["acceptance"]]
     write_text_atomically(out / "report.md", "\n".join(text) + "\n")

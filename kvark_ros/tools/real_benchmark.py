@@ -6,8 +6,13 @@ external torque is zero there and every estimate is error: the report gives each
 τ_ext (joint RMSE, N·m), false force (N), the coverage95 of zero (share of joint samples whose 95 %
 interval contains 0; also per joint, for the whole vector in the χ²_n 95 % ellipsoid of the full covariance,
 and the share of samples where some joint's interval misses 0 against its nominal 1 − 0.95ⁿ) and the
-false-contact share (samples flagged), for the nominal URDF model and for the model augmented with what the
-diagnosis named. With ``--pushes F`` the held-out part is judged a second time, with known pushes of F newtons
+false-contact share (samples flagged), and each observer's mean 95 % interval score (``metrics.interval_score``), for
+the nominal URDF model and for the model augmented with what the diagnosis named. A config whose
+``model_augmentation`` names a calibration (e.g. a known-load one, ``kvark diagnose --known-load``) is a calibrated
+robot: the diagnosis then names what changed since (``--against``), and the report states the calibration's drive
+gains. Two lines judge the intervals on the augmented model (the nominal one beside them): K-VARK's coverage of zero
+≥ ``JOINT_COVERAGE`` on every joint, and its interval score no worse than any other observer's that reports an
+interval. With ``--pushes F`` the held-out part is judged a second time, with known pushes of F newtons
 superposed on it (``real_pushes``): how each observer follows a contact and lets go of it on the robot's own data,
 augmented model. Nothing is tuned to the held-out part.
 """
@@ -16,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -29,6 +35,7 @@ from kvark_ros.core.config import (
     parse_observers,
 )
 from kvark_ros.core.files import staged_directory, write_text_atomically
+from kvark_ros.core.estimation.augmentation import load_augmentation
 from kvark_ros.core.estimation.inputs import EstimatorInputs, select_samples
 from kvark_ros.core.estimation.model_store import save_model
 from kvark_ros.core.estimation.robot_model import RobotModel
@@ -41,6 +48,7 @@ from kvark_ros.tools.real_pushes import HOLD, RAMP, SETTLE, Pushes, phase_rmse, 
 from kvark_ros.tools.replay import run_observer, zero_truth
 
 LEARNED_BASELINES = ("gpadkf", "nnadkf", "gmr_gp")
+JOINT_COVERAGE = 0.90       # K-VARK's coverage95 of zero on every joint (no upper bound: the static band at rest)
 
 
 def split(inputs: EstimatorInputs, train_share: float, rate: float,
@@ -83,10 +91,13 @@ def report(results: dict[str, Any]) -> str:
                 if any(results.get("trim_s", ())) else ""),
              f"- augmentation named by kvark diagnose: {', '.join(results['augmentation']['effects']) or 'none'} "
              f"(held-out gap {results['augmentation']['gap_before']:.3f} → "
-             f"{results['augmentation']['gap_after']:.3f} N·m)",
+             f"{results['augmentation']['gap_after']:.3f} N·m)"
+             + ("" if not results.get("calibration") else f", against the calibration `{results['calibration']}`"),
+             f"- drive gains: {gains_sentence(results['augmentation'].get('drive_gains'), results['joint_names'])}",
              "", "| observer | false τ_ext RMSE (N·m) nominal / augmented | false force RMSE (N) | "
-             "coverage95 of 0 | vector coverage95 of 0 | any-joint miss of 0 | false contact share |",
-             "|---|---|---|---|---|---|---|"]
+             "coverage95 of 0 | vector coverage95 of 0 | any-joint miss of 0 | interval score (N·m) | "
+             "false contact share |",
+             "|---|---|---|---|---|---|---|---|"]
     nominal, augmented = results["nominal"], results["augmented"]
 
     def cell(entry: dict, key: str, digits: int = 3) -> str:
@@ -100,10 +111,48 @@ def report(results: dict[str, Any]) -> str:
                      f"{cell(entry, 'coverage95')} / {cell(other, 'coverage95')} | "
                      f"{cell(entry, 'vector_coverage95')} / {cell(other, 'vector_coverage95')} | "
                      f"{cell(entry, 'any_joint_miss_share')} / {cell(other, 'any_joint_miss_share')} | "
+                     f"{cell(entry, 'interval_score95')} / {cell(other, 'interval_score95')} | "
                      f"{cell(entry['contact'], 'false_contact_share')} / "
                      f"{cell(other.get('contact', {}), 'false_contact_share')} |")
     return "\n".join(lines + ["", *per_joint_coverage(nominal, augmented, results["joint_names"]),
-                              *push_table(results.get("pushes"))]) + "\n"
+                              "", *interval_lines(results), *push_table(results.get("pushes"))]) + "\n"
+
+
+def gains_sentence(record: dict[str, Any] | None, joint_names: Sequence[str]) -> str:
+    """The drive gains the augmented model reads τ_m through: measured with a known load (each ± its 95 %
+    half-width; a joint the data did not narrow below the prior: not identified) or unidentified."""
+    if not record:
+        return "not stated (a diagnosis written before the record existed)"
+    if record.get("calibrated_with") is None:
+        return (f"unidentified (τ_m is {record['torque_measurement']}; free motion cannot tell them from the links' "
+                f"inertia: a payload's mass may be off by up to ±{record['mass_share']:.0%})")
+    found = ", ".join(f"{name} {g:.3f} ± {h:.3f}" if ok else f"{name} not identified (±{h:.2f} prior)"
+                      for name, g, h, ok in zip(joint_names, record["gain"], record["ci95"], record["identified"]))
+    return f"measured with a known load of {record['calibrated_with']['mass_kg']:g} kg: {found} (95 %)"
+
+
+def interval_lines(results: dict[str, Any]) -> list[str]:
+    """The intervals judged on the augmented model (the nominal model beside, for reference): K-VARK's coverage95 of
+    zero at least ``JOINT_COVERAGE`` on every joint, and its mean interval score no worse than that of any other
+    observer that reports an interval (the score pays for width and for every miss, so neither a too-wide nor a
+    too-narrow interval wins)."""
+    lines = ["Intervals (judged on the augmented model; the nominal model for reference):", ""]
+    for model, judged in (("augmented", True), ("nominal", False)):
+        entries = results.get(model) or {}
+        kvark = entries.get("kvark") or {}
+        per_joint, score = kvark.get("coverage95_per_joint"), kvark.get("interval_score95")
+        word = (lambda ok: "pass" if ok else "FAIL") if judged else (lambda ok: "met" if ok else "not met")
+        if per_joint:
+            lines.append(f"- {model}: K-VARK coverage95 of 0 per joint {min(per_joint):.3f}-{max(per_joint):.3f} "
+                         f"(≥ {JOINT_COVERAGE} on every joint: {word(min(per_joint) >= JOINT_COVERAGE)})")
+        others = {name: entry["interval_score95"] for name, entry in entries.items()
+                  if name != "kvark" and entry.get("interval_score95") is not None}
+        if score is not None and others:
+            best = min(others, key=others.get)
+            ok = score <= others[best]
+            lines.append(f"- {model}: K-VARK interval score {score:.3f} N·m against the best other observer with an "
+                         f"interval, {best} {others[best]:.3f} (no worse than every other: {word(ok)})")
+    return lines
 
 
 def push_table(pushes: dict[str, Any] | None) -> list[str]:
@@ -174,6 +223,9 @@ def _run_real(args: argparse.Namespace, out: Path) -> int:
                  and not (args.no_baselines and name in LEARNED_BASELINES)]
     log(f"[benchmark] {args.real}: {len(train)} training and {len(held)} held-out samples (τ_m from "
         f"{inputs.torque_source})")
+    calibration = config.model_augmentation
+    base = load_augmentation(calibration, config.joint_names) if calibration else None
+    config = replace(config, model_augmentation="")     # each model trained here carries its own
     robot = RobotModel.from_config(config)
     try:
         pushes = pushed(robot, config.wrench.frame, held, args.pushes) if args.pushes else None
@@ -186,14 +238,15 @@ def _run_real(args: argparse.Namespace, out: Path) -> int:
     save_model(out / "model", nominal)
     log(f"[benchmark] step 2/{steps}: {len(observers)} observers on the held-out part, nominal model")
     results: dict[str, Any] = {
-        "bag": str(args.real), "train_share": args.train_share, "trim_s": [float(v) for v in args.trim], "torque_source": inputs.torque_source,
-        "joint_names": list(config.joint_names),
+        "bag": str(args.real), "train_share": args.train_share, "trim_s": [float(v) for v in args.trim],
+        "torque_source": inputs.torque_source, "joint_names": list(config.joint_names), "calibration": calibration,
         "rate_hz": round(1.0 / float(np.median(np.diff(held.stamp))), 1),
         "samples": {"train": len(train), "held_out": len(held)},
         "nominal": evaluate(config, nominal, held, observers, log)}
     from kvark_ros.gap.diagnose import train_on_diagnosis
-    log(f"[benchmark] step 3/{steps}: diagnosis of the training part, training on the augmented model")
-    augmented, results["augmentation"] = train_on_diagnosis(config, robot, [train], out,
+    log(f"[benchmark] step 3/{steps}: diagnosis of the training part"
+        + ("" if base is None else f" against the calibration {calibration}") + ", training on the augmented model")
+    augmented, results["augmentation"] = train_on_diagnosis(config, RobotModel.from_config(config, base), [train], out,
                                                             baselines=not args.no_baselines, log=log)
     log(f"[benchmark] step 4/{steps}: {len(observers)} observers on the held-out part, augmented model")
     results["augmented"] = evaluate(config, augmented, held, observers, log)

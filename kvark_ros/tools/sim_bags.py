@@ -1,5 +1,6 @@
 """The simulated data of ``kvark benchmark``: how much (``BenchmarkPlan``), when the training recordings start
-(``training_clocks``), the bags themselves (``simulate_bags``) and their reuse on a forced rerun (``reuse_bags``).
+(``training_clocks``), the bags themselves (``simulate_bags``; a motor-current robot's known-load calibration
+recording, ``simulate_known_load``) and their reuse on a forced rerun (``reuse_bags``).
 Shared by the single-robot benchmark (``tools.benchmark``) and the population (``tools.population``).
 """
 from __future__ import annotations
@@ -15,6 +16,8 @@ from kvark_ros.io import write_run
 
 TEST_SCENARIOS = ("payload", "contact", "collision")
 AUGMENTED_OBSERVERS = ("kvark", "kf", "momentum")
+KNOWN_LOAD_LABEL = "calibration_known_load"
+KNOWN_LOAD_SEED = 50           # its noise and clock seed: the robot's seed + this (training: + 11…, tests: + 100…)
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,25 @@ def simulate_bags(robot: str, plan: BenchmarkPlan, folder: Path, seed: int, log,
     train = [paths[label] for label, scenario, *_ in jobs if scenario == "excitation"]
     tests = {scenario: paths[f"test_{scenario}"] for scenario in TEST_SCENARIOS}
     return train, tests
+
+
+def simulate_known_load(robot: str, plan: BenchmarkPlan, folder: Path, seed: int, log,
+                        plant: Mapping[str, Any]) -> Path:
+    """The known-load calibration recording under ``folder`` (reused if there): the first training recording's motion
+    again (its seed, its duration), started right after it on the plant clock, carrying the known load (``plant``:
+    the robot's plant with it as its payload), with its own noise: how a drive-gain calibration is recorded, the same
+    trajectory with and without a weighed mass (Mamedov et al. 2020), so the two differ by the load alone."""
+    from kvark_ros.sim.scenarios import simulate
+    path = folder / KNOWN_LOAD_LABEL
+    if not path.exists():
+        started = time.perf_counter()
+        folder.mkdir(parents=True, exist_ok=True)
+        clock = training_clocks(len(plan.train_seeds))[0] + plan.train_duration
+        write_run(path, simulate(robot, "excitation", seed + KNOWN_LOAD_SEED, plan.train_duration, plant,
+                                 start_time=clock, motion_seed=seed + plan.train_seeds[0]))
+        log(f"[benchmark] simulated {KNOWN_LOAD_LABEL} ({plan.train_duration:g} s, the motion of "
+            f"train_excitation_{plan.train_seeds[0]} with the known load) in {time.perf_counter() - started:.1f} s")
+    return path
 
 
 def reuse_bags(old: Path, new: Path) -> None:

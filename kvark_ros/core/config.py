@@ -1,11 +1,11 @@
 """One frozen configuration shared by the ROS node, the trainer and the bag replay.
 
-The YAML file is the node's parameter file (``kvark_estimator: ros__parameters: ...``, or
-``/**/kvark_estimator:`` to match the node in any namespace), so the same file configures live and offline runs. Nested groups map to dotted ROS parameter names
-(``filter.ewma_time``). The keys, their checks, defaults and meanings are the one table of
-``kvark_ros.core.config_schema``; ``EstimatorConfig`` and its typed groups (``config.filter``,
-``config.wrench``, ...) are generated from it into ``kvark_ros.core.settings`` and re-exported here, so a new
-key is a row there, ``make generated`` and the code that reads it.
+The YAML file is the node's parameter file (``kvark_estimator: ros__parameters: ...``, or ``/**/kvark_estimator:``
+to match the node in any namespace), so the same file configures live and offline runs. Nested groups map to dotted
+ROS parameter names (``filter.ewma_time``). The keys, their checks, defaults and meanings are the one table of
+``kvark_ros.core.config_schema``; ``EstimatorConfig`` and its typed groups (``config.filter``, ``config.wrench``,
+...) are generated from it into ``kvark_ros.core.settings`` and re-exported here, so a new key is a row there,
+``make generated`` and the code that reads it.
 Every key is validated here, in one place; a bad key or value raises ``ConfigError`` naming the key
 and what is allowed.
 """

@@ -58,8 +58,8 @@ class Key:
 
     kind: ``text``, ``path`` (text, may be empty), ``frame`` (a frame name, may be empty), ``names`` (list of
     distinct strings), ``number``, ``integer``, ``choice``, ``vector3``, ``vector6`` or ``per_joint`` (one number
-    for every joint or one per joint; the config checks the count against the joints). ``low``/``high`` bound numbers and integers,
-    ``low_open``/``high_open`` make an end exclusive; ``choices`` lists a choice's options.
+    for every joint or one per joint; the config checks the count against the joints). ``low``/``high`` bound
+    numbers and integers, ``low_open``/``high_open`` make an end exclusive; ``choices`` lists a choice's options.
     ``default`` None marks a required key.
     """
 

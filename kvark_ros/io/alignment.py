@@ -15,11 +15,11 @@ agree. Stamps that are not finite (which bags cannot hold) still go through the 
 
 What the commands read from a bag (``read_checked``) has τ_m through the config's ``input.effort_scale`` and
 ``input.effort_offset`` (``core.estimation.inputs.EffortCalibration``: the rule the node applies to every message,
-so a UR's motor current in A becomes N·m alike live and offline), and is then checked against the physics of the config's URDF
-as ``kvark import`` checks a log's rows (``core.estimation.sample_limits``: finite, within the limits and their
-margins, no isolated stamp, no position jump): a sample beyond them is skipped and counted, with one line per
-reason naming the bag, the topic, the time and the joint; a bag where most samples fail is refused with one
-line (its joints, units or torque source do not match the config).
+so a UR's motor current in A becomes N·m alike live and offline), and is then checked against the physics of the
+config's URDF as ``kvark import`` checks a log's rows (``core.estimation.sample_limits``: finite, within the limits
+and their margins, no isolated stamp, no position jump): a sample beyond them is skipped and counted, with one line
+per reason naming the bag, the topic, the time and the joint; a bag where most samples fail is refused with one line
+(its joints, units or torque source do not match the config).
 """
 from __future__ import annotations
 

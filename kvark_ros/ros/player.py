@@ -1,13 +1,13 @@
 """``kvark play BAG``: publish a bag's joint states and effort commands to ROS 2, at real time or a set rate.
 
 For users without rosbag2 (the ROS 2 wheels have none) and for the node's tests: the config's
-``input.joint_states_topic`` and ``input.effort_commands_topic`` (the latter only when ``input.torque_source``
-takes τ_m from it: with ``joint_states_effort`` the node has no command subscription to wait for) are read from the
-bag (as ``kvark replay`` reads them) and published under the same relative names, so ``--ros-args -r joint_states:=/arm/joint_states``
-remaps them as it would the node's. Each message goes out as the bag stores it (its serialized CDR bytes:
-stamps and values bit for bit), in log order, at log time / ``--rate`` after the start, with the sensor-data
-QoS the node subscribes with. Before the first message the player waits until every topic has a subscriber
-(``--wait``), so a node that is still starting loses nothing.
+``input.joint_states_topic`` and ``input.effort_commands_topic`` (the latter only when ``input.torque_source`` takes
+τ_m from it: with ``joint_states_effort`` the node has no command subscription to wait for) are read from the bag
+(as ``kvark replay`` reads them) and published under the same relative names, so ``--ros-args -r
+joint_states:=/arm/joint_states`` remaps them as it would the node's. Each message goes out as the bag stores it
+(its serialized CDR bytes: stamps and values bit for bit), in log order, at log time / ``--rate`` after the start,
+with the sensor-data QoS the node subscribes with. Before the first message the player waits until every topic has a
+subscriber (``--wait``), so a node that is still starting loses nothing.
 """
 from __future__ import annotations
 

@@ -118,16 +118,17 @@ def run(args: argparse.Namespace) -> int:
           f"pose, at rest", flush=True)
     print(f"[excitation] largest share of a limit used (position window, velocity, acceleration; 500 Hz grid): "
           + ", ".join(f"{name} {value:.2f}" for name, value in zip(names, worst)), flush=True)
-    print(f"[excitation] log-det coverage {result.logdet:.1f} (best of the initial population {result.initial_best_logdet:.1f})"
-          "; move the arm to the centre pose first, then record its joint states while "
-          f"`ros2 bag play {Path(args.out) / 'joint_trajectory'}` sends it (docs/ros.md, Excitation)", flush=True)
+    print(f"[excitation] log-det coverage {result.logdet:.1f} (best of the initial population "
+          f"{result.initial_best_logdet:.1f}); move the arm to the centre pose first, then record its joint states "
+          f"while `ros2 bag play {Path(args.out) / 'joint_trajectory'}` sends it (docs/ros.md, Excitation for "
+          "training data)", flush=True)
     return 0
 
 
 def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "excitation", help="write an optimised excitation trajectory within a real arm's limits (CSV, "
-                           "JointTrajectory) to record training data",
+                           "JointTrajectory)",
         description=__doc__.split("\n\n")[1] + " Needs no MuJoCo.")
     parser.add_argument("--config", required=True, help="estimator config: the joints and the URDF's limits")
     parser.add_argument("--centre", required=True, metavar="Q[,Q...]",

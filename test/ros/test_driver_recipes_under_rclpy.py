@@ -41,7 +41,6 @@ import rclpy  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from sensor_msgs.msg import JointState  # noqa: E402
 
 from driver_fixtures import UR_TORQUE_CONSTANTS, franka_bag, lbr_urdf, synthetic_driver_bag  # noqa: E402
 from kvark_ros.cli import main as kvark  # noqa: E402

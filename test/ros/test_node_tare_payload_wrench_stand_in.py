@@ -11,7 +11,6 @@ come from ``test_node_logic_stand_in`` (the same stand-in machinery and trained 
 from __future__ import annotations
 
 import ast
-import os
 from dataclasses import replace
 from pathlib import Path
 

@@ -71,7 +71,8 @@ def test_ur_needs_a_scale_for_its_amperes_and_publishes_in_urs_base(tmp_path, ca
     values = _values(out)
     assert values["input.effort_scale"] == list(UR_TORQUE_CONSTANTS) and values["input.effort_offset"] == [0.0]
     assert values["robot_model.torque_measurement"] == "motor_current"
-    assert values["input.torque_source"] == "joint_states_effort" and values["input.joint_states_topic"] == "joint_states"
+    assert values["input.torque_source"] == "joint_states_effort"
+    assert values["input.joint_states_topic"] == "joint_states"
     assert (values["robot_model.ee_frame"], values["robot_model.flange_frame"]) == ("tool0", "tool0")
     assert values["wrench.base_frame"] == "base"
     assert _init("--urdf", "example-robot-data:ur10", "--driver", "ur", "--effort-scale", "1", "--robot", "ur10",

@@ -55,7 +55,8 @@ VECTOR_TOLERANCE = 0.05            # |vector coverage95 − 0.95|
 def acceptance(scenarios: Mapping[str, Any]) -> list[str]:
     """Issues 14 and 17's acceptance checks on the simulated plants, as lines that say pass or FAIL with the figures:
     K-VARK's RMSE against ``RMSE_LIMITS``, its coverage95 pooled and per joint in ``COVERAGE_RANGE``, its vector
-    coverage95 within ``VECTOR_TOLERANCE`` of 0.95, and its contact flag (no onset missed)."""
+    coverage95 within ``VECTOR_TOLERANCE`` of 0.95, its mean 95 % interval score no worse than kf's
+    (``metrics.interval_score``), and its contact flag (no onset missed)."""
     lines = []
     low, high = COVERAGE_RANGE
     for name in TEST_SCENARIOS:
@@ -81,6 +82,10 @@ def acceptance(scenarios: Mapping[str, Any]) -> list[str]:
             ok = abs(vector - 0.95) <= VECTOR_TOLERANCE
             lines.append(f"- {name}: K-VARK vector coverage95 = {vector:.3f} (0.95 ± {VECTOR_TOLERANCE}: "
                          f"{'pass' if ok else 'FAIL'})")
+        score, kf_score = kvark.get("interval_score95"), observers.get("kf", {}).get("interval_score95")
+        if score is not None and kf_score is not None:
+            lines.append(f"- {name}: K-VARK mean interval score (95 %) = {score:.3f} N·m, kf's {kf_score:.3f} "
+                         f"(no worse: {'pass' if score <= kf_score else 'FAIL'})")
         contact = kvark.get("contact") or {}
         if contact.get("onsets"):
             delays = ", ".join(f"{1e3 * d:.0f}" for d in contact.get("detection_delay") or [])

@@ -76,7 +76,15 @@ PLANTS = {
     ("panda", "joint_offset"): {"joint_offset": JOINT_OFFSET["panda"]},
     ("ur5", "joint_offset"): {"joint_offset": JOINT_OFFSET["ur5"]},
     ("panda", "realistic"): yaml.safe_load((ROOT / "kvark_ros/sim/plants/panda_realistic.yaml").read_text()),
+    # a link-side torque sensor 7 % off on joint 2 (3.5 × its ±2 % prior) beside Coulomb friction on every joint
+    ("panda", "gain_beyond_sensor_prior"): {"drive_gain": [1.0, 0.93, 1.0, 1.0, 1.0, 1.0, 1.0],
+                                            "friction": {"model": "coulomb_viscous", "coulomb": PANDA_COULOMB,
+                                                         "viscous": [0.0] * 7}},
 }
+# The plants whose drive gains lie beyond the prior of how their robot measures τ_m (the Panda: link-side sensors,
+# ±2 %; the UR5: motor current, ±10 %: its 0.9 sits at the bound), and the gain's joints
+GAIN_PLANTS = {("panda", "drive_gain"): "panda_joint1", ("ur5", "drive_gain"): "shoulder_pan_joint",
+               ("panda", "gain_beyond_sensor_prior"): "panda_joint2"}
 
 
 def _robot(name: str, base=None) -> RobotModel:
@@ -105,6 +113,14 @@ def diagnoses(runs, robots):
     priors = Priors(max_gain_error=0.2, max_joint_offset=float(np.radians(5.0)), torque_measurement="commanded_effort")
     return {key: diagnose(robots[key[0]], [estimator_inputs(run)], log=lambda _: None, priors=priors)
             for key, run in runs.items()}
+
+
+@pytest.fixture(scope="module")
+def own_priors(runs, robots):
+    """The gain plants diagnosed as their users would: with the priors of their robot's torque measurement."""
+    measurement = {robot: load_config(ROOT / "config" / f"{robot}.yaml").torque_measurement for robot in robots}
+    return {key: diagnose(robots[key[0]], [estimator_inputs(runs[key])], log=lambda _: None,
+                          priors=Priors(torque_measurement=measurement[key[0]])) for key in GAIN_PLANTS}
 
 
 def _effect(diag, name):
@@ -411,3 +427,30 @@ def test_every_start_begins_from_the_urdf_priors_and_the_result_is_the_chosen_st
     # the final refit of the chosen start's effects under its own priors reproduces its held-out residual
     # (the same bounded least squares from the same data: round-off only)
     assert any(np.allclose(found[4], diag.held_after, rtol=0.0, atol=1e-6) for found in chosen)
+
+
+@pytest.mark.parametrize("key", list(GAIN_PLANTS))
+def test_a_drive_gain_beyond_its_prior_leads_the_report(own_priors, key):
+    """Where a drive gain beyond the prior of the robot's torque measurement explains the gap, the report's first
+    warning is that gain (the explanation that explains most, however far beyond its prior), saying how far beyond
+    and what to change; look-alikes that explain less follow it."""
+    diag = own_priors[key]
+    first = diag.result["warnings"][0]
+    assert first.startswith("drive_gain") and GAIN_PLANTS[key] in first, diag.result["warnings"]
+    assert "× its prior" in first or "at the bound of its prior" in first
+    assert "--max-gain-error" in first
+    beyond = diag.result["beyond_priors"]
+    assert [record["explained"] for record in beyond] == sorted((record["explained"] for record in beyond),
+                                                                reverse=True)
+    if key == ("panda", "gain_beyond_sensor_prior"):
+        assert beyond[0]["effect"] == "drive_gain" and beyond[0]["joint"] == 1
+        assert beyond[0]["wanted"] == pytest.approx(0.07, abs=0.01)    # |1 − 0.93|; measured 0.070
+        assert beyond[0]["ratio"] > 3.0 and "far beyond it" in first
+
+
+def test_a_payload_is_stated_consistent_only_as_what_it_is_checked_on(diagnoses):
+    """The payload plants' payloads are bodies: the flange link and the payload itself are checked and consistent."""
+    for robot in ("panda", "ur5"):
+        params = _effect(diagnoses[(robot, "payload")], "payload")["parameters"]
+        assert params["flange_link_consistent"] and params["payload_consistent"] and params["physically_consistent"]
+        assert min(params["inertia_eigenvalues"]) >= -1e-6        # inertia_problem's tolerance, kg·m²

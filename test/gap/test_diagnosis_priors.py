@@ -13,7 +13,7 @@ from kvark_ros.core.config import default_config_path, load_config
 from kvark_ros.core.estimation.payload import inertia_problem
 from kvark_ros.core.estimation.robot_model import RobotModel, RobotModelError, flange_link_parameters
 from kvark_ros.gap.effects import Priors, Term, flange_parameter_map, signals
-from kvark_ros.gap.plausibility import flange_mass_regrouping, plausibility_warnings
+from kvark_ros.gap.plausibility import flange_change, flange_mass_regrouping, plausibility_warnings
 
 
 @pytest.fixture(scope="module")
@@ -120,3 +120,22 @@ def test_the_flange_mass_regroups_with_the_link_before_it(robot) -> None:
     scrambled = replace(s, payload_regressor=rng.normal(size=s.payload_regressor.shape))
     assert flange_mass_regrouping(scrambled, robot)["relative_residual"] > 0.5
     assert flange_mass_regrouping(scrambled, robot)["identified"]
+
+
+def test_a_flange_change_that_is_no_body_is_not_called_a_consistent_tool() -> None:
+    """The report's consistency claims are checked on what they name: 0.5 kg 5 cm along the UR5's flange axis with
+    its ixx 5e-5 kg·m² below a point mass's (a principal moment −5e-5 about its centre, beyond the 1e-6 tolerance)
+    leaves the flange link consistent (its own 0.017-0.034 kg·m² absorb it) but is no body itself: not consistent,
+    and not called a tool. A tool mismatch (negative mass) is no body and is judged on the link alone."""
+    robot = RobotModel.from_config(load_config(default_config_path("ur5")))
+    flange = flange_link_parameters(robot.model, robot.flange_frame_id)
+    a_map = flange_parameter_map(robot)[1]
+    theta = np.array([0.5, 0.0, 0.0, 0.025, 0.00125 - 5e-5, 0.0, 0.00125, 0.0, 0.0, 0.0])
+    change = flange_change(flange, a_map, theta)
+    assert change["flange_link_consistent"] and change["payload_consistent"] is False
+    assert change["physically_consistent"] is False and "not a tool" in change["kind"]
+    theta[4] += 5e-5                                     # a point mass: a body (on the boundary, within tolerance)
+    assert flange_change(flange, a_map, theta)["physically_consistent"]
+    lighter = flange_change(flange, a_map, -0.5 * np.linalg.solve(a_map, flange))
+    assert lighter["payload_consistent"] is None and lighter["physically_consistent"]
+    assert lighter["kind"].startswith("tool mismatch")

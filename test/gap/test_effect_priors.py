@@ -20,7 +20,7 @@ from kvark_ros.gap.admissible import consistent
 from kvark_ros.gap.diagnose import HOLDOUT, _prior_scale, body_fitter, diagnose, prepare
 from kvark_ros.gap.effects import Priors, Term
 from kvark_ros.gap.plausibility import plausibility_warnings
-from kvark_ros.gap.priors import ACCELERATION_TIME, MEASUREMENT_WIDTHS, robot_priors
+from kvark_ros.gap.priors import ACCELERATION_TIME, MEASUREMENT_WIDTHS, PHYSICAL_GAIN_ERROR, robot_priors
 from kvark_ros.gap.selection import payload_first
 
 
@@ -221,3 +221,25 @@ def test_against_a_calibrated_model_only_what_changes_between_runs_is_named(pand
     assert named["payload"]["parameters"]["mass_change"] == pytest.approx(1.0, rel=0.1)
     whole = diagnose(calibrated, [weak], log=lambda _: None, priors=priors, effects=EFFECT_NAMES)
     assert "drive_gain" in [effect["name"] for effect in whole.result["effects"]]
+
+
+def test_a_gain_outside_physics_is_never_offered(panda):
+    """Joint 7 of a Panda carries 0.4 N·m of Coulomb friction and almost no rigid-body torque: offered only drive gains
+    (the library restricted to them, priors of a commanded effort, ±20 %), its gap is read as a gain at the prior's
+    bound and, beyond it, as one near zero (the drive applies almost none of τ_m): a joint with no torque, beyond
+    physics (|1 − g| ≤ 0.5), so it is not offered. Joint 2's drive applies 0.7 τ_m: 1.5 × the prior, inside physics,
+    offered with the flag that allows it."""
+    t, q, qd, _, tau, rng = _motion(panda)
+    gain = np.ones(7)
+    gain[1] = 0.7
+    friction = np.zeros(7)
+    friction[6] = 0.4
+    tau_m = (tau + friction * np.tanh(qd / 0.02)) / gain + 0.02 * rng.standard_normal(tau.shape)
+    diag = diagnose(panda, [EstimatorInputs(t, q, qd, tau_m, "synthetic", 0, True)], log=lambda _: None,
+                    priors=Priors(torque_measurement="commanded_effort"), effects=("drive_gain",))
+    offered = {record["joint"]: record for record in diag.result["beyond_priors"]}
+    assert 6 not in offered and 1 in offered
+    assert offered[1]["wanted"] == pytest.approx(0.3, abs=0.01)      # noise-free model: measured 0.300
+    assert "--max-gain-error 0.35" in diag.result["warnings"][0]
+    assert all(record["wanted"] < PHYSICAL_GAIN_ERROR for record in diag.result["beyond_priors"])
+    assert not any("panda_joint7" in warning and "needs" in warning for warning in diag.result["warnings"])

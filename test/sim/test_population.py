@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from kvark_ros.core.config import default_config_path, load_config
 from kvark_ros.sim import population as pop
 from kvark_ros.sim.plant import CONTROL_RATES_HZ, load_plant
 from kvark_ros.sim.scenarios import simulate
@@ -93,3 +94,28 @@ def test_a_100_hz_robot_writes_100_hz_bags() -> None:
 def test_bad_index_or_seed_is_refused() -> None:
     with pytest.raises(ValueError, match="index and seed"):
         pop.draw_robot(-1, 1000)
+
+
+def test_motor_current_arms_carry_a_weighed_known_load_drawn_on_its_own() -> None:
+    """Every UR5- and UR10-class robot has a known load in its documented range (mass, radius, length, gap) on the
+    flange axis, the Panda class none (link-side sensors); the draw is deterministic and the calibration plant is the
+    robot's plant carrying it."""
+    for robot in pop.draw_population(COUNT, SEEDS[0]):
+        if robot.arm not in pop.MOTOR_CURRENT_ARMS:
+            assert robot.known_load is None
+            with pytest.raises(ValueError, match="no known-load recording"):
+                robot.known_load_plant()
+            continue
+        load = robot.known_load
+        assert _inside(load["mass"], *pop.KNOWN_LOAD_MASS) and load["com"][:2] == [0.0, 0.0]
+        length = 2.0 * (load["com"][2] - pop.KNOWN_LOAD_GAP[0])
+        assert _inside(load["com"][2], pop.KNOWN_LOAD_GAP[0] + pop.KNOWN_LOAD_LENGTH[0] / 2,
+                       pop.KNOWN_LOAD_GAP[1] + pop.KNOWN_LOAD_LENGTH[1] / 2) and length > 0.0
+        # I_zz = m r² / 2 of the drawn (unrounded) mass; the stored mass is rounded to 0.1 g: 5e-5 of 2 kg
+        assert load["inertia"][2] == pytest.approx(0.5 * load["mass"] * pop.KNOWN_LOAD_RADIUS ** 2, rel=1e-4)
+        spec = load_plant(robot.known_load_plant(), len(pop.effort_limits(robot.arm)))
+        assert spec.payload is not None and spec.payload.mass == load["mass"]
+        assert pop.draw_robot(robot.index, SEEDS[0]).known_load == load
+    for arm in pop.ARM_CLASSES:          # the arms whose configs say their τ_m is a motor current
+        current = load_config(default_config_path(arm)).torque_measurement == "motor_current"
+        assert current == (arm in pop.MOTOR_CURRENT_ARMS), arm

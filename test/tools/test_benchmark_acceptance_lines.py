@@ -40,3 +40,16 @@ def test_a_scenario_without_kvark_or_without_intervals_gives_only_what_it_has():
     assert lines == ["- contact: K-VARK / momentum joint RMSE = 0.25 (≤ 0.8: pass)",
                      "- contact: K-VARK / kf joint RMSE = 0.50 (≤ 0.8: pass)",
                      "- contact: K-VARK / oracle joint RMSE = 1.00 (≤ 1.3: pass)"]
+
+
+def test_the_interval_score_line_holds_kvark_to_kf():
+    """Interval scores (N·m) 1.20 against kf's 1.20 (equal: no worse) pass, 1.25 against 1.20 fail; a scenario where
+    kf reports none gives no line."""
+    equal, worse = _scenario(0.5, 0.95, [0.95], 0.95), _scenario(0.5, 0.95, [0.95], 0.95)
+    for scenario, score in ((equal, 1.20), (worse, 1.25)):
+        scenario["observers"]["kvark"]["interval_score95"] = score
+        scenario["observers"]["kf"]["interval_score95"] = 1.20
+    lines = acceptance({"payload": equal, "contact": worse, "collision": _scenario(0.5, 0.95, [0.95], 0.95)})
+    assert "- payload: K-VARK mean interval score (95 %) = 1.200 N·m, kf's 1.200 (no worse: pass)" in lines
+    assert "- contact: K-VARK mean interval score (95 %) = 1.250 N·m, kf's 1.200 (no worse: FAIL)" in lines
+    assert not any(line.startswith("- collision: K-VARK mean interval score") for line in lines)

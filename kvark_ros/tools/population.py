@@ -28,7 +28,7 @@ import numpy as np
 
 from kvark_ros.core.config import ConfigError
 from kvark_ros.core.files import staged_directory, write_text_atomically
-from kvark_ros.tools.acceptance import (acceptance_lines, contact_delay_lines, distribution, flange_mass_line,
+from kvark_ros.tools.acceptance import (acceptance_lines, cell, contact_delay_lines, distribution, flange_mass_line,
                                         prior_line, tally)
 from kvark_ros.tools.sim_bags import AUGMENTED_OBSERVERS, TEST_SCENARIOS, BenchmarkPlan
 

@@ -273,3 +273,20 @@ def test_the_prior_line_fails_only_on_an_effect_outside_its_prior_without_a_warn
     robots[1]["augmentation"]["flange_mass"]["priors"] = _summary(2, 1.4, [], ["torque_offset"])
     line = next(line for line in aggregate(robots)["pooled"]["acceptance"] if "against their priors" in line)
     assert "the largest using 140% of its prior" in line and line.endswith("without a warning: torque_offset: FAIL")
+
+
+def test_the_report_states_each_robots_gains_and_payload_with_their_intervals(tmp_path) -> None:
+    """report.md from a hand-made result: a UR5 calibrated with a known load (its gains ± 95 % beside the drawn ones,
+    an unidentified joint as –) and its payload's mass ± 95 %, and the tally of the judged lines."""
+    from kvark_ros.tools.population import write_report
+    robot = _weighed(_robot(1, "ur5", {"payload": _scene(0.5, 1.0, 1.0, 0.6, kvark_aug=0.5)}), 2.0, 2.1, 0.2)
+    robot["robot"]["description"] = "ur5 at 500 Hz"
+    robot["augmentation"].update(effects=["coulomb_friction"], gap_before=3.0, gap_after=0.8, drive_gains={
+        "calibrated_with": {"mass_kg": 2.5}, "gain": [1.06, 1.0], "ci95": [0.01, 0.1], "identified": [True, False],
+        "prior": 0.1, "true": [1.064, 0.95]})
+    robot["augmentation"]["flange_mass"]["effects"] = ["payload"]
+    write_report(tmp_path, {"seed": 7, "workers": 2, "seconds": 60.0, "robots": [robot], "groups": aggregate([robot]),
+                            "plan": {"train_recordings": 3, "train_duration": 15.0, "test_duration": 10.0}})
+    text = (tmp_path / "report.md").read_text()
+    assert "| 1.060 ± 0.010 (1.064), – (0.950) | payload (2.10 ± 0.20, 2.00) |" in text
+    assert "- acceptance: " in text and "judged lines pass" in text

@@ -24,8 +24,6 @@ import traceback
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
-import numpy as np
-
 from kvark_ros.core.config import ConfigError
 from kvark_ros.core.files import staged_directory, write_text_atomically
 from kvark_ros.tools.acceptance import (acceptance_lines, cell, contact_delay_lines, distribution, flange_mass_line,

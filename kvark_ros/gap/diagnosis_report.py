@@ -90,11 +90,10 @@ def _payload_lines(effect: dict) -> list[str]:
     """A payload's lines in the effects list: what it is, its mass with the 95 % half-width (the gains' share said),
     and each consistency claim as checked (``plausibility.flange_change``)."""
     params, width = effect["parameters"], effect["ci95"].get("mass")
-    gains, model = params.get("mass_gain_ci95"), params.get("mass_model_ci95")
+    gains = params.get("mass_gain_ci95")
     lines = [f"- **{params['kind']}**: mass change {params['mass_change']:+.3f}"
              f"{'' if width is None else f' ± {width:.3f}'} kg (95 %"
-             + ("" if gains is None else f"; in quadrature ±{gains:.3f} kg from the drive gains")
-             + ("" if not model else f" and ±{model:.3f} kg from the calibrated model's misfit") + "; flange link "
+             + ("" if gains is None else f", of which ±{gains:.3f} kg from the drive gains") + "; flange link "
              f"{params['flange_link_mass_urdf']:.3f} → {params['flange_link_mass_total']:.3f} kg, "
              f"{'physically consistent' if params['flange_link_consistent'] else 'NOT physically consistent'})"]
     if params.get("payload_consistent") is not None:
@@ -166,7 +165,7 @@ def augmentation(diag: Diagnosis, robot: RobotModel, robot_name: str = "") -> di
     return {"robot": robot_name, "joint_names": list(robot.joint_names), **against,
             "convention": "tau_m - tau_EL = sum over effects of design(q, qd, qdd, tau_m) @ theta "
                           "(kvark_ros.gap.effects.augmentation_gap)",
-            "drive_gains": diag.result["drive_gains"], "model_misfit": diag.result["model_misfit"], "effects": entries}
+            "drive_gains": diag.result["drive_gains"], "effects": entries}
 
 
 def write_outputs(diag: Diagnosis, robot: RobotModel, out: Path, robot_name: str = "",

@@ -179,24 +179,3 @@ def gain_width(fitter: Fitter, terms: Sequence[Term], inverse: np.ndarray | None
     moments = np.einsum("tjp,j,tj->pj", design, np.square(fitter.w), own, optimize=True)   # (p, n)
     sensitivity = (inverse @ moments)[pos]                                                  # ∂m̂/∂δ_j, kg
     return float(np.sum(np.abs(sensitivity) * np.asarray(half, dtype=float)))
-
-
-def base_misfit(robot: RobotModel) -> np.ndarray | None:
-    """The held-out gap per joint (n,) N·m the calibration ``robot`` is augmented with left on its free motion
-    (``model_misfit`` of its augmentation.yaml), or None (no augmentation, or one written before the record existed)."""
-    if robot.augmentation is None:
-        return None
-    misfit = (yaml.safe_load(robot.augmentation.text) or {}).get("model_misfit")
-    if misfit is None:
-        return None
-    if len(misfit) != robot.n:
-        raise ValueError(f"{robot.augmentation.source}: model_misfit needs one value per joint ({robot.n})")
-    return np.asarray(misfit, dtype=float)
-
-
-def payload_torque(fitter: Fitter, term: Term, theta: np.ndarray) -> np.ndarray:
-    """RMS per joint (n,) N·m of a payload term's own torque on the training samples (at least 1e-9): what a misfit
-    of the calibrated model is weighed against when it is read as a share of the payload (``gain_width``: a misfit of
-    RMS r_j fully aligned with the payload's torque on joint j moves its mass as a gain error of r_j / that RMS)."""
-    own = fitter.design(term)[0] @ theta
-    return np.maximum(np.sqrt(np.mean(np.square(own), axis=0)), 1e-9)

@@ -11,6 +11,8 @@ for rclpy's message object (``deserialize_message``) and 7 µs for rosbags.
 
 from __future__ import annotations
 
+import functools
+import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -77,6 +79,25 @@ class Template:
             values = np.frombuffer(raw, dtype, count, offset)
             out[name] = values if dtype is native else values.astype(native)
         return out
+
+    @functools.cached_property
+    def _stamp(self) -> struct.Struct:
+        """A header's stamp (int32 sec, uint32 nanosec) in this message's byte order."""
+        return struct.Struct(("<" if self.raw[1] else ">") + "iI")
+
+    def stamped(self, sec: int, nanosec: int, name: str | None = None, values: np.ndarray | None = None) -> bytes:
+        """This template's message stamped (sec, nanosec), with the float64 field ``name`` set to ``values`` ((count,)
+        float64) if given: ``fill`` for a message whose header comes first (its stamp at bytes 4 to 12), as the
+        node's estimate topics are, in one copy and two writes per sample."""
+        out = bytearray(self.raw)
+        self._stamp.pack_into(out, 4, sec, nanosec)
+        if name is not None:
+            offset, dtype, native, count = self.fields[name]
+            data = (values if dtype is native else values.astype(dtype)).tobytes()
+            if len(data) != 8 * count:
+                raise ValueError(f"{name}: {len(data) // 8} values for a field of {count}")
+            out[offset:offset + len(data)] = data
+        return bytes(out)
 
     def fill(self, values: Mapping[str, npt.ArrayLike]) -> bytes:
         """This template's message with the fields of ``values`` (name → number or (count,) numbers) set."""

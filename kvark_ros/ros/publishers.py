@@ -29,6 +29,7 @@ depth), for every topic here; ``/diagnostics`` stays reliable (the node's own).
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -86,7 +87,11 @@ class EstimatePublishers:
         self._publish: dict[str, Callable[[bytes], None]] = {topic: publisher.publish
                                                              for topic, publisher in self.topics.items()}
         self._torque = joint_state_template(self.names)
-        self._flags = joint_state_template(FLAGS, field="position")
+        flags = joint_state_template(FLAGS, field="position")
+        # (contact, collision) -> contact_state with those positions, stamped per sample
+        self._flags = {(contact, collision): replace(flags, raw=flags.fill({"position": (float(contact),
+                                                                                         float(collision))}))
+                       for contact in (False, True) for collision in (False, True)}
         self._stddev = float64_array_template([(",".join(self.names), n, n)], n)
         self._covariance = float64_array_template([("row: " + ",".join(WRENCH_AXES), 6, 36),
                                                    ("column: " + ",".join(WRENCH_AXES), 6, 6)], 36)
@@ -94,6 +99,7 @@ class EstimatePublishers:
         # frame id -> template, made at a frame id's first use
         self._wrenches: dict[str, Template] = {}
         self._with_covariance: dict[str, Template] = {}
+        self._uncertainty = self._fixed_axes = False     # whether any of them is wanted (check_subscribers)
 
     @staticmethod
     def _stamped(templates: dict[str, Template], make: Callable[[str], Template], frame_id: str) -> Template:
@@ -104,34 +110,38 @@ class EstimatePublishers:
 
     def _wrench(self, stamp: Stamp, frame_id: str, values: np.ndarray) -> bytes:
         """A WrenchStamped in ``frame_id``: ``values`` (6,) N, N·m."""
-        return self._stamped(self._wrenches, wrench_template, frame_id).fill(
-            {"sec": stamp[0], "nanosec": stamp[1], "wrench": values})
+        return self._stamped(self._wrenches, wrench_template, frame_id).stamped(stamp[0], stamp[1], "wrench", values)
 
     def publish(self, estimate: Estimate, stamp: Stamp, output: WrenchOutput) -> None:
         """Every wanted topic's message of one estimate, stamped with the input's stamp; ``output`` gives the
         wrench's frame ids, axes and sign."""
-        publish, wanted = self._publish, self.wanted
+        publish = self._publish
         sec, nanosec = stamp
-        publish["external_joint_torque"](self._torque.fill({"sec": sec, "nanosec": nanosec,
-                                                            "effort": estimate.tau_ext}))
+        publish["external_joint_torque"](self._torque.stamped(sec, nanosec, "effort", estimate.tau_ext))
         frame_id, values = output.published(estimate)
         wrench = self._wrench(stamp, frame_id, values)
         publish["external_wrench"](wrench)
-        publish["contact_state"](self._flags.fill({"sec": sec, "nanosec": nanosec, "position": (
-            float(estimate.contact), float(estimate.collision))}))
-        for axes, topic in (("base", "external_wrench_in_base_frame"), ("end_effector", "external_wrench_in_ee_frame")):
-            if wanted[topic]:
-                publish[topic](wrench if axes == estimate.wrench_frame else
-                               self._wrench(stamp, *output.in_axes(estimate, axes)))
-        if estimate.tau_cov is not None:
+        flags = (bool(estimate.contact), bool(estimate.collision))
+        publish["contact_state"](self._flags[flags].stamped(sec, nanosec))
+        if self._fixed_axes:
+            self._publish_fixed_axes(estimate, stamp, wrench, output)
+        if self._uncertainty and estimate.tau_cov is not None:
             self._publish_uncertainty(estimate, stamp, frame_id, values, output)
-        if wanted["contact"]:
-            publish["contact"](self._bools[bool(estimate.contact)])
-        if wanted["collision"]:
-            publish["collision"](self._bools[bool(estimate.collision)])
+        if self.wanted["contact"]:
+            publish["contact"](self._bools[flags[0]])
+        if self.wanted["collision"]:
+            publish["collision"](self._bools[flags[1]])
         self.published += 1
         if self.published % SUBSCRIBER_CHECK == 0:
             self.check_subscribers()
+
+    def _publish_fixed_axes(self, estimate: Estimate, stamp: Stamp, wrench: bytes, output: WrenchOutput) -> None:
+        """The wrench in base and in ee_frame axes, on the topics someone subscribes to (``wrench``: the message of
+        ``external_wrench``, in ``wrench.frame`` axes)."""
+        for axes, topic in (("base", "external_wrench_in_base_frame"), ("end_effector", "external_wrench_in_ee_frame")):
+            if self.wanted[topic]:
+                self._publish[topic](wrench if axes == estimate.wrench_frame else
+                                     self._wrench(stamp, *output.in_axes(estimate, axes)))
 
     def _publish_uncertainty(self, estimate: Estimate, stamp: Stamp, frame_id: str, wrench: np.ndarray,
                              output: WrenchOutput) -> None:
@@ -141,8 +151,8 @@ class EstimatePublishers:
         if stamped or arrays:
             stddev = np.sqrt(np.maximum(np.diag(estimate.tau_cov), 0.0))
             if stamped:
-                publish["external_joint_torque_stddev_stamped"](self._torque.fill(
-                    {"sec": stamp[0], "nanosec": stamp[1], "effort": stddev}))
+                publish["external_joint_torque_stddev_stamped"](self._torque.stamped(stamp[0], stamp[1], "effort",
+                                                                                     stddev))
             if arrays:
                 publish["external_joint_torque_stddev"](self._stddev.fill({"data": stddev}))
         with_covariance, arrays = wanted["external_wrench_with_covariance"], wanted["external_wrench_covariance"]
@@ -160,3 +170,9 @@ class EstimatePublishers:
         for topic, publisher in self.topics.items():
             if topic not in ALWAYS:
                 self.wanted[topic] = publisher.get_subscription_count() > 0
+        wanted = self.wanted
+        self._fixed_axes = wanted["external_wrench_in_base_frame"] or wanted["external_wrench_in_ee_frame"]
+        self._uncertainty = any(wanted[topic] for topic in ("external_joint_torque_stddev_stamped",
+                                                            "external_joint_torque_stddev",
+                                                            "external_wrench_with_covariance",
+                                                            "external_wrench_covariance"))

@@ -53,6 +53,7 @@ class WrenchOutput:
     def configure(self, config: EstimatorConfig) -> None:
         """Take the run-time key ``wrench.convention`` of ``config``."""
         self.sign = -1.0 if config.wrench.convention == "applied_by_robot" else 1.0
+        self._as_estimated = self.sign > 0.0 and self._turn is None     # the estimate's wrench as it is
 
     def in_axes(self, estimate: Estimate, axes: str) -> tuple[str, np.ndarray]:
         """(frame id, wrench (6,) N, N·m) of ``estimate`` in ``base`` or ``end_effector`` axes, in the published
@@ -66,6 +67,8 @@ class WrenchOutput:
 
     def published(self, estimate: Estimate) -> tuple[str, np.ndarray]:
         """``in_axes`` of the estimate's own axes (``wrench.frame``)."""
+        if self._as_estimated:                       # the node's path per sample: no copy, no call
+            return (self.base_frame if estimate.wrench_frame == "base" else self.ee_frame), estimate.wrench
         return self.in_axes(estimate, estimate.wrench_frame)
 
     def covariance(self, estimate: Estimate) -> np.ndarray:

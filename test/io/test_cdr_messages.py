@@ -172,3 +172,20 @@ def test_a_wrench_with_its_covariance_and_the_flags_encode_what_rosbags_decodes(
         {"sec": 1, "nanosec": 0, "position": [1.0, 0.0]}), JOINT_STATE)
     assert flags.name == ["contact", "collision"] and flags.position.tolist() == [1.0, 0.0]
     assert not len(flags.velocity) and not len(flags.effort)
+
+
+def test_a_stamped_template_is_fill_with_the_stamp_and_one_field():
+    """``Template.stamped`` (the node's per-sample path) writes what ``fill`` writes: the header's stamp and one
+    float64 field, the rest of the template kept; a field of the wrong length is refused."""
+    rng = np.random.default_rng(9)
+    tau, wrench = rng.normal(size=7), rng.normal(size=6)
+    torque = joint_state_template(ARM)
+    assert torque.stamped(12, 345, "effort", tau) == torque.fill({"sec": 12, "nanosec": 345, "effort": tau})
+    frame = wrench_template("base")
+    assert frame.stamped(-3, 999_999_999, "wrench", wrench) == frame.fill(
+        {"sec": -3, "nanosec": 999_999_999, "wrench": wrench})
+    flags = joint_state_template(["contact", "collision"], field="position")
+    decoded = STORE.deserialize_cdr(flags.stamped(7, 8), JOINT_STATE)
+    assert (decoded.header.stamp.sec, decoded.header.stamp.nanosec, decoded.position.tolist()) == (7, 8, [0.0, 0.0])
+    with pytest.raises(ValueError, match="effort: 6 values for a field of 7"):
+        torque.stamped(1, 2, "effort", tau[:6])

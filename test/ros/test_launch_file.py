@@ -86,12 +86,14 @@ class TestEstimatorTopics(unittest.TestCase):
 
     def test_outputs_for_a_joint_state_and_command_stream(self):
         node = self.node
-        got = {"torque": [], "wrench": [], "stddev": [], "covariance": [], "contact": [], "diagnostics": []}
+        got = {"torque": [], "wrench": [], "stddev": [], "covariance": [], "contact": [], "contact_state": [],
+               "diagnostics": []}
         for key, kind, topic in (("torque", JointState, f"{OUT}/external_joint_torque"),
                                  ("wrench", WrenchStamped, f"{OUT}/external_wrench"),
                                  ("stddev", Float64MultiArray, f"{OUT}/external_joint_torque_stddev"),
                                  ("covariance", Float64MultiArray, f"{OUT}/external_wrench_covariance"),
                                  ("contact", Bool, f"{OUT}/contact"),
+                                 ("contact_state", JointState, f"{OUT}/contact_state"),
                                  ("diagnostics", DiagnosticArray, "/diagnostics")):
             node.create_subscription(kind, topic, got[key].append, 100)
         states = node.create_publisher(JointState, "/joint_states", qos_profile_sensor_data)
@@ -123,6 +125,8 @@ class TestEstimatorTopics(unittest.TestCase):
         self.assertTrue(all(len(m.data) == 7 for m in got["stddev"]) and got["stddev"])
         self.assertTrue(all(len(m.data) == 36 for m in got["covariance"]) and got["covariance"])
         self.assertTrue(got["contact"])
+        self.assertTrue(got["contact_state"])
+        self.assertEqual({tuple(m.name) for m in got["contact_state"]}, {("contact", "collision")})
         statuses = {s.name: s for array in got["diagnostics"] for s in array.status}
         [model] = [s for name, s in statuses.items() if name.endswith("/kvark_estimator: model")]   # fully qualified
         self.assertEqual(model.level, DiagnosticStatus.OK)

@@ -109,8 +109,10 @@ def drive_gains_section(gains: dict, joint_names: Sequence[str]) -> list[str]:
     lines = ["## Drive gains", ""]
     load, bound = gains.get("calibrated_with"), gains["prior"]
     if load is None:
+        named = ", ".join(f"{name} {g:.3f}" for name, g in zip(joint_names, gains["gain"]) if g != 1.0)
         return lines + [
-            f"Unidentified: τ_m is {gains['torque_measurement']}, and free motion cannot tell a drive gain from the "
+            ("" if not named else f"Named by the fit: {named}. ")
+            + f"Unidentified: τ_m is {gains['torque_measurement']}, and free motion cannot tell a drive gain from the "
             f"links' inertia (they look alike). A gain error within the prior |1 − g| ≤ {bound:.0%} scales a "
             f"payload's torque one to one, so a payload's mass read with this model may be off by up to "
             f"±{gains['mass_share']:.0%} (its interval carries it). To measure the gains, record the same kind of "

@@ -132,17 +132,17 @@ def gain_record(effects: Sequence[Mapping[str, Any]], n: int, bound: float, load
                 measurement: str, centre: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """``drive_gains`` of diagnosis.json and augmentation.yaml: the gain per joint (1 where none is named), its 95 %
     half-width (the prior's ``bound`` where the data did not narrow it) and whether it was identified. Without a known
-    load every gain is unidentified: free motion cannot tell it from the links' inertia. ``mass_share``: the largest
+    load every gain is unidentified, named or not: free motion cannot tell it from the links' inertia. ``mass_share``: the largest
     share of a payload's mass the gains may move it by (``gain_width`` gives the payload's own figure)."""
     gain, half = np.ones(n), np.full(n, bound)
     identified = np.zeros(n, dtype=bool)
-    if load is not None:
-        for effect in effects:
-            if effect["name"] == "drive_gain":
-                for j, value, width in zip(effect["joints"], effect["parameters"]["gain"], effect["ci95"]["gain"]):
-                    gain[j] = value
-                    identified[j] = bool(np.isfinite(width) and width < bound)
-                    half[j] = min(float(width), bound) if np.isfinite(width) else bound
+    for effect in effects:
+        if effect["name"] == "drive_gain":
+            for j, value, width in zip(effect["joints"], effect["parameters"]["gain"], effect["ci95"]["gain"]):
+                gain[j] = value       # as named; its interval only where a known load measured it
+                if load is not None and np.isfinite(width):
+                    identified[j] = bool(width < bound)
+                    half[j] = min(float(width), bound)
     record: dict[str, Any] = {
         "calibrated_with": None if load is None else {"mass_kg": load.mass, "source": load.source, **(centre or {})},
         "torque_measurement": measurement, "prior": bound, "gain": gain.tolist(), "ci95": half.tolist(),

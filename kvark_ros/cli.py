@@ -42,7 +42,7 @@ COMMANDS = (
             "run many bags through observers on a Dask cluster; one table of every bag's metrics"),
     Command("benchmark", "kvark_ros.tools.benchmark",
             "simulate, train and compare every observer (writes results.json and report.md)"),
-    Command("bench", "kvark_ros.tools.bench", "per-step latency of the estimator on a synthetic stream"),
+    Command("bench", "kvark_ros.tools.step_latency", "per-step latency of the estimator on a synthetic stream"),
     Command("soak", "kvark_ros.tools.soak", "long faulty run of the estimator: NaN, crashes, covariance SPD, memory"),
     Command("config", "kvark_ros.tools.config", "print a config's validated settings, or every key (--keys)"),
     Command("init", "kvark_ros.tools.init", "write a commented config for a new robot from its URDF or xacro"),

@@ -61,7 +61,8 @@ from kvark_ros.gap.known_load import KnownLoad, calibrate_with, load_signals
 from kvark_ros.gap.plausibility import prior_summary
 from kvark_ros.gap.priors import FLAGS, MEASUREMENT_WIDTHS, robot_priors
 from kvark_ros.gap.selection import per_joint, rmse, select
-from kvark_ros.io.alignment import add_sample_options, load_recordings
+from kvark_ros.io.recorded_inputs import load_recordings
+from kvark_ros.cli_options import add_sample_options
 from kvark_ros.io.runs import numerical_failures
 
 if TYPE_CHECKING:

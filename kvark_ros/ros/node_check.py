@@ -41,7 +41,7 @@ from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.core.estimation.pairing import stamp_seconds
 from kvark_ros.core.estimation.robot_model import urdf_sha256
-from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.recorded_inputs import read_inputs
 from kvark_ros.io.cdr_messages import Decoder
 from kvark_ros.io.common import JOINT_STATE
 from kvark_ros.ros.input_loop import InputGroup, InputLoop, ServiceThread

@@ -1,4 +1,4 @@
-"""The acceptance limits the benchmark reports check, in one place, and the population's lines (``tools.population``):
+"""The acceptance limits the benchmark reports check, in one place, and the population's lines (``tools.population_benchmark``):
 the simulated plants' limits (``tools.benchmark``), and the population's lines as restated by the drive-gain
 calibration's owner: read on the diagnosed model (the pipeline's result), the nominal model's figures beside them for
 reference; K-VARK's coverage95 at least min(kf's, 0.95) and its interval score no worse than kf's in every cell; the

@@ -28,7 +28,7 @@ from kvark_ros.core.files import check_output, staged_directory, write_text_atom
 from kvark_ros.core.estimation.model_store import TrainedModel, save_model
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.learning.training import train_model
-from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.recorded_inputs import read_inputs
 from kvark_ros.tools.acceptance import COVERAGE_RANGE, ORACLE_LIMIT, RMSE_LIMIT
 from kvark_ros.tools.evaluate import Setup, dask_client, decoded, evaluate_bags, loaded, merge
 from kvark_ros.tools.sim_bags import (AUGMENTED_OBSERVERS, FULL, QUICK, TEST_SCENARIOS, BenchmarkPlan, reuse_bags,
@@ -207,7 +207,7 @@ def add_parser(subparsers: SubParsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.population is not None:
-        from kvark_ros.tools.population import check_arguments, run_population
+        from kvark_ros.tools.population_benchmark import check_arguments, run_population
         check_arguments(args)
         check_output(args.out, args.force)
         return run_population(args)

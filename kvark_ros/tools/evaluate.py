@@ -44,7 +44,7 @@ from kvark_ros.core.estimation.model_store import MODEL_FILE, TrainedModel, load
 from kvark_ros.core.estimation.observers import ResidualPredictor, make_observer
 from kvark_ros.core.estimation.robot_model import RobotModel, urdf_sha256
 from kvark_ros.io import BagError
-from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.recorded_inputs import read_inputs
 from kvark_ros.tools.metrics import in_motion, observer_metrics, static_band
 from kvark_ros.tools.replay import GroundTruth, ObserverRun, bag_fields, ground_truth, plant_oracle, run_observer
 

@@ -41,9 +41,10 @@ from kvark_ros.core.estimation.model_store import save_model
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.learning.training import train_model
 from kvark_ros.io import BagError
-from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.recorded_inputs import read_inputs
 from kvark_ros.io.runs import numerical_failures
-from kvark_ros.tools.metrics import CONTACT_TORQUE, observer_metrics, static_band
+from kvark_ros.core.contact_events import CONTACT_TORQUE
+from kvark_ros.tools.metrics import observer_metrics, static_band
 from kvark_ros.tools.real_pushes import HOLD, RAMP, SETTLE, Pushes, phase_rmse, pushed
 from kvark_ros.tools.replay import run_observer, zero_truth
 

@@ -34,9 +34,10 @@ from kvark_ros.core.estimation.observers import ResidualPredictor
 from kvark_ros.core.estimation.robot_model import RobotModel, condition_numbers, urdf_sha256
 from kvark_ros.io import (BagError, BagWriter, RecordedRun, bool_messages, float64_array_messages,
                           joint_state_messages, load_message_types, wrench_messages, write_run_messages)
-from kvark_ros.io.alignment import add_trim_option, read_checked, read_inputs
+from kvark_ros.io.recorded_inputs import read_checked, read_inputs
+from kvark_ros.cli_options import add_trim_option
 from kvark_ros.io.runs import numerical_failures
-from kvark_ros.tools.reference import align_reference, interpolate
+from kvark_ros.tools.two_run_reference import align_reference, interpolate
 from kvark_ros.tools.truth_topics import missing_truth
 from kvark_ros.tools.metrics import in_motion, mahalanobis_rows, observer_metrics, static_band
 from kvark_ros.tools.wrench_truth import sensed_wrench
@@ -258,7 +259,7 @@ def bag_fields(inputs: EstimatorInputs, truth: GroundTruth | None, trained: Trai
                decode_seconds: float, trim: tuple[float, float] = (0.0, 0.0),
                skipped: dict[str, int] | None = None) -> dict:
     """metrics.json's fields of the bag itself (``kvark evaluate`` writes the same per bag); ``skipped``: samples
-    skipped beyond the physics of the URDF per reason (``io.alignment.read_checked``)."""
+    skipped beyond the physics of the URDF per reason (``io.recorded_inputs.read_checked``)."""
     return {"ground_truth": truth.kind if truth is not None else "none", "trim_s": [float(v) for v in trim],
             "samples": len(inputs), "duration_s": round(float(inputs.stamp[-1] - inputs.stamp[0]), 3),
             "torque_source": inputs.torque_source, "dropped_samples": inputs.dropped,

@@ -1,7 +1,7 @@
 """The simulated data of ``kvark benchmark``: how much (``BenchmarkPlan``), when the training recordings start
 (``training_clocks``), the bags themselves (``simulate_bags``; a motor-current robot's known-load calibration
 recording, ``simulate_known_load``) and their reuse on a forced rerun (``reuse_bags``).
-Shared by the single-robot benchmark (``tools.benchmark``) and the population (``tools.population``).
+Shared by the single-robot benchmark (``tools.benchmark``) and the population (``tools.population_benchmark``).
 """
 from __future__ import annotations
 

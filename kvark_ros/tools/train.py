@@ -24,7 +24,8 @@ from kvark_ros.core.files import check_output, staged_directory
 from kvark_ros.core.estimation.residual.common import available_cores
 from kvark_ros.core.estimation.robot_model import RobotModel, urdf_sha256
 from kvark_ros.core.learning.training import HOLDOUT, INPUT_MODES, train_model
-from kvark_ros.io.alignment import add_sample_options, load_recordings
+from kvark_ros.io.recorded_inputs import load_recordings
+from kvark_ros.cli_options import add_sample_options
 from kvark_ros.io.runs import numerical_failures
 
 if TYPE_CHECKING:

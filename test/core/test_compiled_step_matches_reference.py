@@ -44,7 +44,7 @@ from kvark_ros.core.learning.kmp_inputs import fit_kmp, second_inputs
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.estimation.stiction import StictionBand
 from kvark_ros.core.learning.training import training_data
-from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.recorded_inputs import read_inputs
 
 from reference_estimator import ReferenceEstimator
 from reference_filter import ReferenceMomentumFilter, reference_estimator

@@ -12,7 +12,7 @@ from conftest import debounced_margin
 from kvark_ros.core.estimation.estimator import Estimator
 from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.io import read_run
-from kvark_ros.io.alignment import estimator_inputs
+from kvark_ros.io.recorded_inputs import estimator_inputs
 from kvark_ros.core.contact_events import SETTLE
 from kvark_ros.tools.metrics import contact_metrics
 from kvark_ros.core.estimation.contact import CollisionDetector, ContactDetector

@@ -21,7 +21,7 @@ import numba.core.registry
 from kvark_ros.core.config import load_config
 from kvark_ros.core.estimation.estimator import Estimator
 from kvark_ros.core.estimation.model_store import load_model
-from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.recorded_inputs import read_inputs
 
 def signatures():
     found = {}

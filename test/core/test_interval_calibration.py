@@ -18,7 +18,7 @@ from scipy.stats import chi2, norm
 
 from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.core.estimation.robot_model import RobotModel
-from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.recorded_inputs import read_inputs
 from kvark_ros.tools.metrics import LEVELS, in_motion, mahalanobis_squared, observer_metrics
 from kvark_ros.tools.plots import plot_reliability
 from kvark_ros.tools.real_benchmark import evaluate, report, split

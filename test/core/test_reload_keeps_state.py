@@ -17,7 +17,7 @@ from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.core.estimation.observers.momentum_observers import make_momentum_observer
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.io import read_run
-from kvark_ros.io.alignment import estimator_inputs
+from kvark_ros.io.recorded_inputs import estimator_inputs
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "panda.yaml"

@@ -27,7 +27,7 @@ from kvark_ros.core.learning.kmp_inputs import fit_kmp, second_inputs
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.learning.training import (HOLDOUT, LAMBDA2_GRID, N_COMPONENTS, calibrate_lambda2, train_model,
                                               training_data)
-from kvark_ros.io.alignment import load_recordings
+from kvark_ros.io.recorded_inputs import load_recordings
 
 ROOT = Path(__file__).resolve().parents[2]
 BAGS = [str(ROOT / "bags" / "panda_excitation_1"), str(ROOT / "bags" / "panda_excitation_2")]

@@ -21,7 +21,7 @@ from kvark_ros.gap.diagnosis_report import augmentation  # noqa: E402
 from kvark_ros.gap.effects import EFFECT_NAMES, Priors, augmentation_gap  # noqa: E402
 from kvark_ros.gap.plausibility import OUTSIDE_TOLERANCE, prior_summary  # noqa: E402
 from kvark_ros.io import write_run  # noqa: E402
-from kvark_ros.io.alignment import estimator_inputs  # noqa: E402
+from kvark_ros.io.recorded_inputs import estimator_inputs  # noqa: E402
 from kvark_ros.sim.scenarios import simulate  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,6 +1,6 @@
-"""Replay pairs a run's joint states and commands all at once (kvark_ros.io.alignment._paired_rows); every
-decision must be the streaming pairer's (kvark_ros.core.estimation.pairing.StreamPairer fed the messages in time
-order)."""
+"""Replay pairs a run's joint states and commands all at once (kvark_ros.core.estimation.pairing.paired_rows, through
+kvark_ros.io.recorded_inputs.estimator_inputs); every decision must be the streaming pairer's (StreamPairer fed the
+messages in time order, as the node is)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -9,8 +9,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from kvark_ros.core.estimation.pairing import RESET, Sample, StreamPairer
 from kvark_ros.io import CommandSeries, JointStateSeries, RecordedRun, read_run
-from kvark_ros.io.alignment import _paired, estimator_inputs
+from kvark_ros.io.recorded_inputs import estimator_inputs
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -19,6 +20,27 @@ ROOT = Path(__file__).resolve().parents[2]
 STATES = st.lists(st.integers(0, 80), min_size=1, max_size=40)
 COMMANDS = st.lists(st.integers(0, 160), min_size=1, max_size=40)
 AGES = st.sampled_from([0.0, 0.0005, 0.001, 0.0025, 0.01, np.inf])
+
+
+def _paired(run: RecordedRun, max_command_age: float) -> list[Sample]:
+    """The run's states and commands through the streaming pairer, in time order: states at their stamps, commands
+    at theirs, at equal times the state before its command."""
+    states, commands = run.joint_states, run.commands
+    assert commands is not None
+    pairer = StreamPairer(max_command_age, max_gap=np.inf)
+    keys = np.concatenate([states.stamp, commands.stamp])
+    kinds = np.concatenate([np.zeros(len(states.stamp), dtype=np.int8), np.ones(len(commands.stamp), dtype=np.int8)])
+    rows = np.concatenate([np.arange(len(states.stamp)), np.arange(len(commands.stamp))])
+    samples: list[Sample] = []
+    for event in np.lexsort((kinds, keys)):
+        row, key = rows[event], float(keys[event])
+        if kinds[event] == 0:
+            done = pairer.state(key, Sample(key, states.position[row], states.velocity[row], None))
+        else:
+            done = pairer.command(key, commands.effort[row], stamp=key)
+        samples.extend(sample for sample in done if sample is not RESET)
+    samples.extend(pairer.flush())
+    return samples
 
 
 def _run(state_ms: list[int], command_half_ms: list[int]) -> RecordedRun:

@@ -16,7 +16,7 @@ from rosbags.rosbag2 import CompressionFormat, CompressionMode, Reader, StorageP
 
 from kvark_ros.io import BagError, RecordedRun, read_run
 from kvark_ros.io import mcap_bulk, reader
-from kvark_ros.io.alignment import estimator_inputs
+from kvark_ros.io.recorded_inputs import estimator_inputs
 from kvark_ros.io.cdr_arrays import Layout, message_fields, windows
 from kvark_ros.io.common import BOOL, FLOAT64_ARRAY, JOINT_STATE, WRENCH_STAMPED, typestore
 from kvark_ros.io.mcap_bulk import indexed_messages

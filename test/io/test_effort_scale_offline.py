@@ -1,4 +1,4 @@
-"""The effort's scale and offset offline: what every command reads from a bag (``io.alignment.read_inputs``) turns a
+"""The effort's scale and offset offline: what every command reads from a bag (``io.recorded_inputs.read_inputs``) turns a
 UR's motor currents into N·m with the config's ``input.effort_scale``/``effort_offset``, the rule the node applies to
 every message (``core.estimation.inputs.EffortCalibration``), before the samples are checked against the URDF."""
 from __future__ import annotations
@@ -12,7 +12,7 @@ import pytest
 from kvark_ros.core.config import config_from_parameters
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.io import BagError
-from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.recorded_inputs import read_inputs
 from kvark_ros.tools.synthetic import synthetic_stream
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -10,7 +10,7 @@ import pytest
 
 from kvark_ros.io import (BagError, BagWriter, CommandSeries, JointStateSeries, RecordedRun, TopicNames,
                           WrenchSeries, write_run)
-from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.recorded_inputs import read_inputs
 
 REMAPPED = TopicNames("/arm/joint_states", "/arm/effort_commands", "/arm/ft/wrench")
 

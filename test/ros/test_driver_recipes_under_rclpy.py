@@ -47,7 +47,7 @@ from kvark_ros.cli import main as kvark  # noqa: E402
 from kvark_ros.core.config import load_config  # noqa: E402
 from kvark_ros.core.estimation.model_store import load_model, save_model  # noqa: E402
 from kvark_ros.core.estimation.robot_model import RobotModel  # noqa: E402
-from kvark_ros.io.alignment import read_inputs  # noqa: E402
+from kvark_ros.io.recorded_inputs import read_inputs  # noqa: E402
 from kvark_ros.io.bag_messages import read_messages  # noqa: E402
 from kvark_ros.io.common import JOINT_STATE, typestore  # noqa: E402
 from kvark_ros.ros import node_check, node_process, publishers  # noqa: E402

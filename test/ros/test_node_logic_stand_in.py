@@ -31,7 +31,7 @@ from kvark_ros.core.estimation.estimator import Status
 from kvark_ros.core.estimation.model_store import load_model, save_model
 from kvark_ros.core.learning.training import train_model
 from kvark_ros.io import CommandSeries, RecordedRun, read_run, write_run
-from kvark_ros.io.alignment import estimator_inputs
+from kvark_ros.io.recorded_inputs import estimator_inputs
 from kvark_ros.tools.replay import run_observer
 
 from conftest import debounced_margin

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from kvark_ros.io import BagError, CommandSeries, JointStateSeries, RecordedRun, TopicNames, WrenchSeries, write_run
-from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.recorded_inputs import read_inputs
 from kvark_ros.tools.replay import ground_truth
 
 

@@ -27,7 +27,7 @@ from kvark_ros.core.config import load_config
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.estimation.sample_limits import POSITION, TORQUE, VELOCITY, SampleLimits
 from kvark_ros.io import BagError, read_run, write_run
-from kvark_ros.io.alignment import read_checked
+from kvark_ros.io.recorded_inputs import read_checked
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "config" / "ur5.yaml"

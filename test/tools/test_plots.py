@@ -231,7 +231,7 @@ def test_training_prints_one_line_per_step_with_counts(panda, monkeypatch):
 def test_diagnose_prints_its_rounds_with_joint_names(panda):
     pytest.importorskip("mujoco")
     from kvark_ros.gap.diagnose import diagnose
-    from kvark_ros.io.alignment import estimator_inputs
+    from kvark_ros.io.recorded_inputs import estimator_inputs
     from kvark_ros.sim.scenarios import simulate
     offsets = [0.6, -0.5, 0.0, 0.4, 0.0, 0.0, 0.0]
     run = simulate("panda", "excitation", seed=3, duration=4.0, plant={"torque_offset": offsets}, progress=False)

@@ -20,7 +20,7 @@ from kvark_ros.core.config import load_config
 from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.observer_catalog import OBSERVER_NAMES
-from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.recorded_inputs import read_inputs
 from kvark_ros.tools.colours import OBSERVER_COLOURS, TRUTH_COLOUR, colour_word, observer_colour
 from kvark_ros.core.contact_events import CONTACT_TORQUE
 from kvark_ros.tools.metrics import observer_metrics, wrench_metrics

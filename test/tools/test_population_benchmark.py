@@ -6,7 +6,7 @@ import pytest
 
 from kvark_ros.cli import main
 from kvark_ros.tools.acceptance import distribution
-from kvark_ros.tools.population import aggregate, cells
+from kvark_ros.tools.population_benchmark import aggregate, cells
 
 
 def _obs(rmse: float, coverage: float | None = None, per_joint: list[float] | None = None,
@@ -278,7 +278,7 @@ def test_the_prior_line_fails_only_on_an_effect_outside_its_prior_without_a_warn
 def test_the_report_states_each_robots_gains_and_payload_with_their_intervals(tmp_path) -> None:
     """report.md from a hand-made result: a UR5 calibrated with a known load (its gains ± 95 % beside the drawn ones,
     an unidentified joint as –) and its payload's mass ± 95 %, and the tally of the judged lines."""
-    from kvark_ros.tools.population import write_report
+    from kvark_ros.tools.population_benchmark import write_report
     robot = _weighed(_robot(1, "ur5", {"payload": _scene(0.5, 1.0, 1.0, 0.6, kvark_aug=0.5)}), 2.0, 2.1, 0.2)
     robot["robot"]["description"] = "ur5 at 500 Hz"
     robot["augmentation"].update(effects=["coulomb_friction"], gap_before=3.0, gap_after=0.8, drive_gains={

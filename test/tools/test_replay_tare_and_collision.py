@@ -9,7 +9,7 @@ import numpy as np
 from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.core.estimation.robot_model import RobotModel
-from kvark_ros.io.alignment import read_inputs
+from kvark_ros.io.recorded_inputs import read_inputs
 from kvark_ros.tools.metrics import observer_metrics
 from kvark_ros.tools.replay import ground_truth, run_observer
 

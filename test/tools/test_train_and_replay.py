@@ -30,7 +30,7 @@ from kvark_ros.core.estimation.model_store import MODEL_FILE, load_model, save_m
 from kvark_ros.core.estimation.residual import ResidualModelError
 from kvark_ros.core.estimation.robot_model import RobotModel, resolve_urdf
 from kvark_ros.io import BagWriter, TopicNames, read_run, write_run
-from kvark_ros.io.alignment import estimator_inputs
+from kvark_ros.io.recorded_inputs import estimator_inputs
 from kvark_ros.tools.metrics import observer_metrics
 from kvark_ros.tools.replay import GroundTruth, ObserverRun, ground_truth, replay, run_observer
 

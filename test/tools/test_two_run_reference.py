@@ -6,7 +6,7 @@ import pytest
 
 from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.io import BagError
-from kvark_ros.tools.reference import Q_TOLERANCE, align_reference
+from kvark_ros.tools.two_run_reference import Q_TOLERANCE, align_reference
 from kvark_ros.tools.synthetic import step_torque, synthetic_stream
 
 RATE = 500.0

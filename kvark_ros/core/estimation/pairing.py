@@ -1,8 +1,8 @@
 """Joint states and commanded torques in, paired estimator samples out. ROS-free and message-agnostic.
 
-One rule for the live node and for replay over a bag. Replay applies it to a whole bag at once
-(``kvark_ros.io.alignment``: in time order the rule decides every state together), and
-test/io/test_bulk_pairing.py checks that this gives the samples this streaming pairer gives.
+One rule for the live node and for replay over a bag: :class:`StreamPairer` message by message, and
+:func:`paired_rows` for a whole recording at once (in time order the rule decides every state together;
+test/io/test_bulk_pairing.py checks that the two give the same samples).
 
 Mapping names to columns
     Joints are matched by name, never by position (:class:`JointColumns`): extra joints are ignored,
@@ -276,3 +276,30 @@ class StreamPairer:
             return
         sample.tau_m = self._last[1]
         done.append(sample)
+
+
+def paired_rows(state_stamp: np.ndarray, command_stamp: np.ndarray,
+                max_command_age: float) -> tuple[np.ndarray, np.ndarray]:
+    """(joint-state rows, command rows) of the paired samples in time order: :class:`StreamPairer`'s decisions for
+    every message of a recording at once (states at their stamps, commands at theirs, s; no new run: ``max_gap``
+    infinite). In time order a repeated or older state stamp is out of order, a state's own command is the first
+    one at or after its stamp and before the next state's, and a state without one takes the newest command before
+    its stamp no older than ``max_command_age`` s (module docstring). A stamp that is not finite pairs nothing."""
+    finite_states, finite_commands = np.flatnonzero(np.isfinite(state_stamp)), np.flatnonzero(np.isfinite(command_stamp))
+    if not len(finite_states) or not len(finite_commands):
+        return np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
+    by_state = finite_states[np.argsort(state_stamp[finite_states], kind="stable")]
+    stamps = state_stamp[by_state]
+    accepted = np.ones(len(stamps), dtype=bool)
+    accepted[1:] = stamps[1:] > stamps[:-1]              # a stamp not after the previous one is out of order
+    states, stamps = by_state[accepted], stamps[accepted]
+    by_command = finite_commands[np.argsort(command_stamp[finite_commands], kind="stable")]
+    commands = command_stamp[by_command]
+    after = np.searchsorted(commands, stamps, side="left")            # first command at or after each state
+    following = np.append(stamps[1:], np.inf)
+    own = after < len(commands)
+    own[own] = commands[after[own]] < following[own]                  # ... and before the next state
+    before = after - 1                                                # the newest command before the state
+    age = stamps - commands[np.maximum(before, 0)]
+    usable = own | ((before >= 0) & ~(age > max_command_age))
+    return states[usable], by_command[np.where(own, after, before)[usable]]

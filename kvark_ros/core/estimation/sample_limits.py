@@ -5,7 +5,7 @@ a position of 1e305 rad, a stamp of 2.7e154 s, a joint at rest one row and 30 ra
 later. Such a row must not reach a fit or a filter (one of them overflowed ``kvark diagnose``'s least
 squares), and dropping it must cost a line in a report, not the file. This module is the one place
 the physical bounds and the checks live: ``kvark import`` (per CSV/NPZ/MAT row), every command that
-reads a bag (``kvark_ros.io.alignment.read_checked``) and, per sample, the live estimator
+reads a bag (``kvark_ros.io.recorded_inputs.read_checked``) and, per sample, the live estimator
 (:meth:`SampleLimits.violation`).
 
 Bounds (:class:`SampleLimits`), from the URDF with margins chosen to catch corrupt values, never a

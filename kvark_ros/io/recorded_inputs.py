@@ -7,11 +7,8 @@ before it, and a state without one takes the newest earlier command no older tha
 ``max_command_age``; the others are dropped and counted. ``input.torque_source: joint_states_effort``
 takes the joint states' effort instead, and a bag without commands falls back to it.
 
-In time order that rule decides every state at once (:func:`_paired_rows`): a repeated stamp is
-rejected (out of order), a state's own command is the first one at or after its stamp and before the
-next state's, and a state without one takes the last command before its stamp. Feeding the pairer
-message by message cost more than the rest of a replay; test/io/test_bulk_pairing.py checks the two
-agree. Stamps that are not finite (which bags cannot hold) still go through the pairer.
+A bag holds every message at once, so the rule decides every state together
+(``core.estimation.pairing.paired_rows``, the pairer's bulk form); test/io/test_bulk_pairing.py checks the two agree.
 
 What the commands read from a bag (``read_checked``) has τ_m through the config's ``input.effort_scale`` and
 ``input.effort_offset`` (``core.estimation.inputs.EffortCalibration``: the rule the node applies to every message,
@@ -23,15 +20,15 @@ per reason naming the bag, the topic, the time and the joint; a bag where most s
 """
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
 
 from kvark_ros.core.config import EstimatorConfig
+from kvark_ros.core.contact_events import touching
 from kvark_ros.core.estimation.inputs import EffortCalibration, EstimatorInputs, select_samples
-from kvark_ros.core.estimation.pairing import RESET, Sample, StreamPairer
+from kvark_ros.core.estimation.pairing import paired_rows
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.estimation.sample_limits import Drop, RowCheck, SampleLimits, check_rows, counted
 from kvark_ros.io import BagError, RecordedRun, TopicNames, read_run
@@ -39,7 +36,6 @@ from kvark_ros.io.common import FLOAT64_ARRAY, JOINT_STATE
 from kvark_ros.io.info import topic_types
 from kvark_ros.io.topic_hints import missing_topic
 
-CONTACT_TORQUE = 1.0     # N·m: a true |τ_ext| above this on a joint is contact (about a joint's static friction)
 MIN_KEPT_SHARE = 0.5     # a bag with fewer samples within the physics is refused (kvark import's rule)
 # What to check when a reason skips most of a bag's samples.
 FIXES = {"position": "check that the config's robot_model (URDF, joint_names) is this robot's and q is in rad",
@@ -48,49 +44,6 @@ FIXES = {"position": "check that the config's robot_model (URDF, joint_names) is
                    "constant: input.effort_scale, or kvark import's effort scale)",
          "jump": "check that the config's joint_names are this robot's, in the bag's order",
          "far": "check the bag's header stamps", "non-finite": "re-record or re-import the bag"}
-
-
-def _paired(run: RecordedRun, max_command_age: float) -> list[Sample]:
-    """The run's states and commands through the streaming pairer, in time order (module docstring)."""
-    states, commands = run.joint_states, run.commands
-    assert commands is not None
-    pairer = StreamPairer(max_command_age, max_gap=np.inf)
-    # Events in time order; at equal times the state (kind 0) before its command (kind 1).
-    keys = np.concatenate([states.stamp, commands.stamp])
-    kinds = np.concatenate([np.zeros(len(states.stamp), dtype=np.int8), np.ones(len(commands.stamp), dtype=np.int8)])
-    rows = np.concatenate([np.arange(len(states.stamp)), np.arange(len(commands.stamp))])
-    order = np.lexsort((kinds, keys))
-    samples: list[Sample] = []
-    for event in order:
-        row, key = rows[event], float(keys[event])
-        if kinds[event] == 0:
-            done = pairer.state(key, Sample(key, states.position[row], states.velocity[row], None))
-        else:
-            done = pairer.command(key, commands.effort[row], stamp=key)
-        samples.extend(sample for sample in done if sample is not RESET)
-    samples.extend(pairer.flush())
-    return samples
-
-
-def _paired_rows(state_stamp: np.ndarray, command_stamp: np.ndarray,
-                 max_command_age: float) -> tuple[np.ndarray, np.ndarray]:
-    """(joint-state rows, command rows) of the paired samples in time order: the pairer's decisions for
-    finite stamps, taken all at once (module docstring)."""
-    by_state = np.argsort(state_stamp, kind="stable")
-    stamps = state_stamp[by_state]
-    accepted = np.ones(len(stamps), dtype=bool)
-    accepted[1:] = stamps[1:] > stamps[:-1]              # a stamp not after the previous one is out of order
-    states, stamps = by_state[accepted], stamps[accepted]
-    by_command = np.argsort(command_stamp, kind="stable")
-    commands = command_stamp[by_command]
-    after = np.searchsorted(commands, stamps, side="left")            # first command at or after each state
-    following = np.append(stamps[1:], np.inf)
-    own = after < len(commands)
-    own[own] = commands[after[own]] < following[own]                  # ... and before the next state
-    before = after - 1                                                # the newest command before the state
-    age = stamps - commands[np.maximum(before, 0)]
-    usable = own | ((before >= 0) & ~(age > max_command_age))
-    return states[usable], by_command[np.where(own, after, before)[usable]]
 
 
 def estimator_inputs(run: RecordedRun, max_command_age: float = 0.01, path: str = "bag",
@@ -105,16 +58,8 @@ def estimator_inputs(run: RecordedRun, max_command_age: float = 0.01, path: str 
     states = run.joint_states
     commands = run.commands
     if torque_source != "joint_states_effort" and commands is not None and len(commands.stamp) > 0:
-        if np.isfinite(states.stamp).all() and np.isfinite(commands.stamp).all():
-            rows, paired = _paired_rows(states.stamp, commands.stamp, max_command_age)
-            stamp, q, qd, tau_m = states.stamp[rows], states.position[rows], states.velocity[rows], \
-                commands.effort[paired]
-        else:
-            samples = _paired(run, max_command_age)
-            n = states.position.shape[1]
-            stamp = np.array([s.stamp for s in samples], dtype=np.float64)
-            q, qd, tau_m = (np.array([getattr(s, name) for s in samples], dtype=np.float64).reshape(-1, n)
-                            for name in ("q", "qd", "tau_m"))
+        rows, paired = paired_rows(states.stamp, commands.stamp, max_command_age)
+        stamp, q, qd, tau_m = states.stamp[rows], states.position[rows], states.velocity[rows], commands.effort[paired]
         return EstimatorInputs(stamp, q, qd, tau_m, "effort_commands", len(states.stamp) - len(stamp),
                                run.simulated)
     fresh = np.isfinite(states.effort).all(axis=1)
@@ -193,40 +138,17 @@ def read_inputs(bag: str | Path, config: EstimatorConfig,
     return run, inputs
 
 
-def add_trim_option(parser: argparse.ArgumentParser) -> None:
-    """``--trim START END`` (``select_samples``), as replay, train and diagnose take it."""
-    parser.add_argument("--trim", nargs=2, type=float, default=(0.0, 0.0), metavar=("START", "END"),
-                        help="drop the first START and the last END seconds of the bag(s) (a start-up, a stop, a "
-                             "contact)")
-
-
-def holdout_share(text: str) -> float:
-    """A held-out share in [0.05, 0.9] (argparse type of --holdout): enough to judge by and to fit on."""
-    value = float(text)
-    if not 0.05 <= value <= 0.9:
-        raise argparse.ArgumentTypeError(f"must be in [0.05, 0.9], got {value:g}")
-    return value
-
-
-def add_sample_options(parser: argparse.ArgumentParser, holdout: float, holdout_help: str) -> None:
-    """``--trim``, ``--rate`` and ``--holdout`` of the commands that learn from bags (train, diagnose)."""
-    add_trim_option(parser)
-    parser.add_argument("--rate", type=float, default=0.0, metavar="HZ",
-                        help="keep every k-th sample for about this rate (default 0: as recorded)")
-    parser.add_argument("--holdout", type=holdout_share, default=holdout, metavar="FRACTION",
-                        help=f"{holdout_help} (default {holdout:g})")
-
-
 def contact_warning(bag: str, run: RecordedRun, kept: EstimatorInputs, start: float) -> str | None:
     """One line when the bag's ground-truth external torque (``/ground_truth/external_joint_torque``: simulated or
-    imported bags) exceeds ``CONTACT_TORQUE`` within the ``kept`` samples: the bag is not contact-free. Times are s
-    from ``start`` (the bag's first sample, as --trim counts them). Without ground truth nothing is checked."""
+    imported bags) shows contact within the ``kept`` samples (``core.contact_events.touching``): the bag is not
+    contact-free. Times are s from ``start`` (the bag's first sample, as --trim counts them). Without ground truth
+    nothing is checked."""
     truth = run.external_torque
     if truth is None or not len(kept):
         return None
     within = (truth.stamp >= kept.stamp[0]) & (truth.stamp <= kept.stamp[-1])
     size = np.nan_to_num(np.abs(truth.effort[within]), nan=0.0)
-    over = np.flatnonzero((size > CONTACT_TORQUE).any(axis=1))
+    over = np.flatnonzero(touching(truth.effort[within]))
     if not len(over):
         return None
     row, joint = np.unravel_index(np.argmax(size), size.shape)

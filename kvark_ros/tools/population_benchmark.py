@@ -78,7 +78,7 @@ def run_robot(robot: PopulationRobot, plan: BenchmarkPlan, folder: str) -> dict[
     from kvark_ros.core.learning.training import train_model
     from kvark_ros.gap.diagnose import train_on_diagnosis
     from kvark_ros.gap.known_load import KnownLoad
-    from kvark_ros.io.alignment import read_inputs
+    from kvark_ros.io.recorded_inputs import read_inputs
     from kvark_ros.tools.sim_bags import simulate_bags, simulate_known_load
     from kvark_ros.tools.evaluate import Setup, evaluate_task
 
@@ -149,7 +149,7 @@ def flange_mass(config: Any, folder: Path, payload_bag: Path, true_mass: float,
     from kvark_ros.gap.diagnosis_report import write_outputs
     from kvark_ros.gap.effects import Priors
     from kvark_ros.gap.plausibility import prior_summary
-    from kvark_ros.io.alignment import read_inputs
+    from kvark_ros.io.recorded_inputs import read_inputs
 
     base = load_augmentation(folder / "diagnosis" / "augmentation.yaml", config.joint_names)
     robot = RobotModel.from_config(config, base)

@@ -121,7 +121,7 @@ def prior_summary(result: Mapping[str, Any]) -> dict[str, Any]:
     """A diagnosis's named effects against their priors (``diagnosis.json``'s ``effects``, ``warnings`` and
     ``beyond_priors``): how many, the largest share of its prior any uses (``admissible.prior_use``), those at a
     bound (each a warning), the explanations wanted beyond a prior (each a warning) and the effects outside their
-    prior with no warning (``unwarned``: the acceptance of issue 28 wants none; a fit within its bounds leaves a
+    prior with no warning (``unwarned``: a diagnosis should leave none; a fit within its bounds leaves a
     share above 1 by round-off only, ``OUTSIDE_TOLERANCE``)."""
     effects = result["effects"]
     uses = [effect["prior_use"] for effect in effects if effect.get("prior_use") is not None]

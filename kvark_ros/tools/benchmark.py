@@ -53,7 +53,7 @@ VECTOR_TOLERANCE = 0.05            # |vector coverage95 − 0.95|
 
 
 def acceptance(scenarios: Mapping[str, Any]) -> list[str]:
-    """Issues 14 and 17's acceptance checks on the simulated plants, as lines that say pass or FAIL with the figures:
+    """The acceptance checks on the simulated plants, as lines that say pass or FAIL with the figures:
     K-VARK's RMSE against ``RMSE_LIMITS``, its coverage95 pooled and per joint in ``COVERAGE_RANGE``, its vector
     coverage95 within ``VECTOR_TOLERANCE`` of 0.95, its mean 95 % interval score no worse than kf's
     (``metrics.interval_score``), and its contact flag (no onset missed)."""
@@ -136,7 +136,7 @@ def write_report(out: Path, results: Mapping[str, Any], training: Mapping[str, A
 
 
 def augmentation_section(results: Mapping[str, Any]) -> str:
-    """Joint RMSE on the nominal and on the augmented model (issue 6: the augmentation's effect)."""
+    """Joint RMSE on the nominal and on the augmented model (the augmentation's effect)."""
     augmented = results["augmented"]
     lines = ["## Model augmentation (kvark diagnose on the training bags, docs/method.md §8)", "",
              f"Effects found: {', '.join(augmented['effects']) or 'none'}; held-out gap "

@@ -34,7 +34,7 @@ from kvark_ros.io import CommandSeries, RecordedRun, read_run, write_run
 from kvark_ros.io.recorded_inputs import estimator_inputs
 from kvark_ros.tools.replay import run_observer
 
-from conftest import debounced_margin
+from conftest import debounced_margin, shared_directory
 
 ROOT = Path(__file__).resolve().parents[2]
 OUT = "/kvark_estimator"
@@ -84,14 +84,15 @@ def model_dir(tmp_path_factory, panda):
     """A small model: train_model (no baselines) on a 4 s simulated excitation run; every joint's residual takes
     q̇ and the gravity torque g(q), so the node's path of the pose inputs is the one under test. 4 s, not less:
     shorter excitations span fewer than 3n directions of (q, q̇, q̈), and a model trained on 1 s gave the
-    contact test below margins of 0.07-2.12 over five seeds (luck), 4 s gave 1.09-2.94."""
-    from kvark_ros.sim.scenarios import simulate
-    run = simulate("panda", "excitation", seed=1, duration=4.0, progress=False)
-    trained = train_model(panda, "panda", [estimator_inputs(run)], baselines=False, log=lambda _line: None,
-                          residual_inputs="qd_g")
-    directory = tmp_path_factory.mktemp("model") / "panda"
-    save_model(directory, trained)
-    return directory
+    contact test below margins of 0.07-2.12 over five seeds (luck), 4 s gave 1.09-2.94. Trained once per session
+    (``shared_directory``): this module, the tare/payload one and the singular-pose one all drive the node with it."""
+    def build(directory: Path) -> None:
+        from kvark_ros.sim.scenarios import simulate
+        run = simulate("panda", "excitation", seed=1, duration=4.0, progress=False)
+        save_model(directory, train_model(panda, "panda", [estimator_inputs(run)], baselines=False,
+                                          log=lambda _line: None, residual_inputs="qd_g"))
+
+    return shared_directory(tmp_path_factory, "stand_in_model", build)
 
 
 def _simulated_bag(tmp_path_factory, scenario: str) -> Path:

@@ -198,7 +198,7 @@ def test_training_that_raises_keeps_the_previous_model(bags, cli_model, tmp_path
     target, before = _previous_model(cli_model, tmp_path)
     with pytest.raises(RuntimeError, match="GP fit failed"):
         main(["train", "--config", str(CONFIG), "--bags", str(bags.mcap), "--out", str(target),
-              "--no-baselines", "--no-plots", "--force"])
+              "--no-baselines", "--no-plots", "--force", "--residual-inputs", "qd"])   # straight to the KMP fit
     assert _snapshot(target) == before
     assert sorted(p.name for p in target.parent.iterdir()) == ["panda"]
 
@@ -306,7 +306,8 @@ def test_cli_replay_observer_the_model_cannot_build_is_a_one_line_user_error(bag
     assert observer in err
 
 
-def test_diagnose_then_train_on_the_augmented_model_then_replay(config, bags, cli_model, tmp_path, capsys):
+def test_diagnose_then_train_on_the_augmented_model_then_replay(config, bags, cli_model, cli_replay, tmp_path,
+                                                                 capsys):
     """`make demo`'s chain (issue 6 scope 2): the augmentation travels with the model, its residuals
     are relative to the augmented model, and the oracle (nominal model + true friction) refuses it."""
     diagnosis, model = tmp_path / "diagnosis", tmp_path / "model"
@@ -332,8 +333,13 @@ def test_diagnose_then_train_on_the_augmented_model_then_replay(config, bags, cl
     assert main(["replay", "--config", str(CONFIG), "--model", str(model), "--bag", str(bags.payload),
                  "--observers", "oracle", "--plant", plant, "--out", str(tmp_path / "oracle"), "--no-bag"]) == 1
     assert "augmented" in capsys.readouterr().err
+    # On the payload bag the augmented model's kvark errs no more than the nominal model's (cli_replay, same bag;
+    # 10 % margin: measured 0.249 against 0.258 N·m), and its residual still helps: below kf's, the same filter
+    # without it (measured 0.249 against 0.412 N·m: bound 0.75 ×)
     observers = json.loads((tmp_path / "replay" / "metrics.json").read_text())["observers"]
-    assert observers["kvark"]["joint_rmse_mean"] < 1.0
+    nominal = json.loads((cli_replay / "metrics.json").read_text())["observers"]
+    assert observers["kvark"]["joint_rmse_mean"] <= 1.1 * nominal["kvark"]["joint_rmse_mean"], (observers, nominal)
+    assert observers["kvark"]["joint_rmse_mean"] < 0.75 * observers["kf"]["joint_rmse_mean"], observers
 
 
 # --------------------------------------------------------------------------- 4. ground truth
@@ -479,7 +485,9 @@ def _frictionless(robot: RobotModel, duration: float, seed: int, external=None) 
 
 @pytest.fixture(scope="module")
 def frictionless(robot):
-    """A model trained on two 3 s frictionless streams, with the three learned baselines.
+    """A model trained on two 3 s frictionless streams, with the three learned baselines. Every joint's residual takes
+    q̇ alone: the residual is noise about zero here, which no second input explains (input selection is tested with
+    ``cli_model`` and in core/test_kmp_second_inputs.py), and selecting would triple the training time.
 
     train_model(baselines=True) spends most of its time in the sparse GP's exact hyperparameter fit
     with restarts, so the baselines are fitted directly with light settings on the same residuals and
@@ -488,7 +496,7 @@ def frictionless(robot):
     from kvark_ros.core.estimation.residual import GMRGPResidualModel, MLPResidualModel, SparseGPResidualModel
     from kvark_ros.core.learning.training import train_model, training_data
     segments = [_frictionless(robot, 3.0, seed)[0] for seed in (100, 200)]
-    trained = train_model(robot, "panda", segments, baselines=False, log=lambda _line: None)
+    trained = train_model(robot, "panda", segments, baselines=False, log=lambda _line: None, residual_inputs="qd")
     data = training_data(robot, segments)
     baselines = {
         "gmr_gp": GMRGPResidualModel.fit(None, None, samples_per_support=2, reference=trained.residual.reference),
@@ -567,8 +575,13 @@ def test_cli_replay_of_free_motion_with_zero_truth_and_a_trim(bags, cli_model, t
     assert metrics["ground_truth"].startswith("zero") and metrics["trim_s"] == [0.5, 0.25]
     # 1.5 s of the bag kept at 500 Hz, ± one sample at each cut
     assert abs(metrics["samples"] - (EXCITATION_S - 0.75) * RATE) <= 2
-    kvark = metrics["observers"]["kvark"]
-    assert 0.0 < kvark["joint_rmse_mean"] and kvark["coverage95"] is not None
+    # Contact-free motion: the error is false torque. kvark's residual model takes out the friction the nominal
+    # model lacks, so it reports at most half the false torque of the momentum observer, which has no residual model
+    # (measured 0.068 against 0.373 N·m); its intervals, calibrated to hold 95 % of the contact-free τ̂ on these
+    # training recordings, hold the zero truth on at least 90 % of the samples (measured 0.983)
+    kvark, momentum = metrics["observers"]["kvark"], metrics["observers"]["momentum"]
+    assert kvark["joint_rmse_mean"] < 0.5 * momentum["joint_rmse_mean"], (kvark, momentum)
+    assert kvark["coverage95"] >= 0.9 and momentum["coverage95"] is None
     capsys.readouterr()
     code, err = _cli_error(capsys, ["replay", "--config", str(CONFIG), "--model", str(cli_model), "--bag",
                                     str(bags.mcap), "--ground-truth", "reference", "--out", str(tmp_path / "ref"),

@@ -23,6 +23,23 @@ STAND_IN_MODULES = {"rclpy", "rcl_interfaces", "builtin_interfaces", "std_msgs",
                     "std_srvs", "diagnostic_msgs", "ros_stand_in_core"}
 NODE_MODULE = "kvark_ros.ros.estimator_node"
 
+# The modules that take longest (seconds of test time on 2 cores, measured with --durations), run first: `make test`
+# hands whole modules to its workers in collection order (--dist loadfile), and a long module handed out last keeps
+# one worker busy after the other has finished. The rest keep their order.
+LONG_MODULES = ("test/gap/test_diagnosis.py", "test/tools/test_train_and_replay.py",
+                "test/gap/test_diagnosis_workflow.py", "test/core/test_training_fast_paths.py",
+                "test/tools/test_fuzz_corrupt_logs.py", "test/ros/test_node_logic_stand_in.py",
+                "test/tools/test_real_benchmark.py", "test/core/test_kvark_filter.py",
+                "test/core/test_compiled_step_matches_reference.py", "test/tools/test_walkthrough.py",
+                "test/tools/test_evaluate_on_dask.py")
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """The ``LONG_MODULES`` first, longest first (a stable sort: every module's tests keep their order)."""
+    rank = {ROOT / name: k for k, name in enumerate(LONG_MODULES)}
+    items.sort(key=lambda item: rank.get(item.path, len(rank)))
+
+
 # One BLAS/OpenMP thread for the whole session (also exported by the Makefile): a sum split over
 # another number of threads rounds differently, and the simulated fixtures must not depend on the
 # machine's core count.

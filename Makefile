@@ -92,7 +92,7 @@ docs-check: $(STAMP)
 ## settings (kvark_ros/core/settings.py), the key comments of config/*.yaml (values, notes and prose kept) and
 ## the table of keys in docs/configuration.md
 generated: $(STAMP)
-	$(BIN)/python -m kvark_ros.core.config_sources --write-settings --write-configs --write-keys-doc docs/configuration.md
+	$(BIN)/python -m kvark_ros.tools.generate_sources --write-settings --write-configs --write-keys-doc docs/configuration.md
 
 ## versions: the interpreter and the installed versions the figures depend on
 versions: $(STAMP)

@@ -61,6 +61,20 @@ def test_core_and_io_import_no_upper_layer():
     assert not offenders, "\n".join(offenders)
 
 
+def test_no_command_line_parsing_below_the_commands():
+    """``core`` and ``io`` hold rules and bag I/O, not command lines: argparse is imported only by the layers above
+    (and ``kvark_ros/cli_options.py``, the options the commands share)."""
+    offenders = []
+    for path in PACKAGE.rglob("*.py"):
+        if _package(_module_name(path)) not in LOWER_LAYERS:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            names = ([alias.name for alias in node.names] if isinstance(node, ast.Import)
+                     else [node.module] if isinstance(node, ast.ImportFrom) else [])
+            offenders += [str(path.relative_to(ROOT)) for name in names if name == "argparse"]
+    assert not offenders, offenders
+
+
 def test_live_estimation_imports_nothing_of_learning():
     """What the node loads (``core.estimation``, and the shared modules of ``core``) never imports ``core.learning``,
     not even inside a function: learning is a layer above live estimation."""

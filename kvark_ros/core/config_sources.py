@@ -1,17 +1,15 @@
 """What the key table generates (``config_schema.KEYS``): the typed settings module, the key comments of config
-files and docs/configuration.md's table of keys. ``make generated`` runs this module after a change to the table::
+files and docs/configuration.md's table of keys. ``make generated`` writes them after a change to the table::
 
-    python -m kvark_ros.core.config_sources --write-settings --write-configs --write-keys-doc docs/configuration.md
+    python -m kvark_ros.tools.generate_sources --write-settings --write-configs --write-keys-doc docs/configuration.md
 
 The tests compare each generated file with what this module makes now and name the command when one is stale.
 ``kvark init`` writes its configs through ``config_text`` too.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import re
-import sys
 import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -88,7 +86,7 @@ def settings_source() -> str:
     groups = [group for group in GROUPS if group != "payload"]
     lines = ['"""Typed settings of the configuration: one frozen dataclass per group of keys, and ``EstimatorConfig``.',
              "",
-             "Generated from config_schema.KEYS by `python -m kvark_ros.core.config_sources --write-settings` (or",
+             "Generated from config_schema.KEYS by `python -m kvark_ros.tools.generate_sources --write-settings` (or",
              "`make generated`); do not edit: change the key table and regenerate (the tests check this file).",
              '"""', "from __future__ import annotations", "", "from dataclasses import dataclass, field",
              "from typing import Literal", "", "from kvark_ros.core.estimation.payload import Payload", ""]
@@ -260,15 +258,6 @@ def regenerated_config_text(text: str, source: str = "config") -> str:
     return config_text(parse_config_text(text, source))
 
 
-def _write(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` unless it holds it already; say which."""
-    if (path.read_text() if path.exists() else None) != text:
-        path.write_text(text)
-        print(f"wrote {path}")
-    else:
-        print(f"{path}: up to date")
-
-
 def document_with_keys_table(text: str) -> str:
     """``text`` (docs/configuration.md) with its table of keys (the lines from the table's header row) made ``keys_table()``."""
     header = keys_table().splitlines()[0]
@@ -278,31 +267,3 @@ def document_with_keys_table(text: str) -> str:
     end = text.find("\n\n", start)
     end = len(text.rstrip("\n")) if end < 0 else end
     return text[:start] + keys_table() + text[end:]
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m kvark_ros.core.config_sources``: write the sources generated from the key table."""
-    parser = argparse.ArgumentParser(prog="python -m kvark_ros.core.config_sources",
-                                     description="Write what the key table generates (after changing KEYS).")
-    parser.add_argument("--write-settings", action="store_true", help=f"write {SETTINGS_PATH.name} (typed settings)")
-    parser.add_argument("--write-configs", nargs="*", metavar="FILE",
-                        help="rewrite the key comments of config files, keeping their values, notes and prose "
-                             f"(default: {CONFIG_DIR}/**/*.yaml)")
-    parser.add_argument("--write-keys-doc", type=Path, metavar="MARKDOWN",
-                        help="replace the table of keys in this document (docs/configuration.md) by "
-                             "`kvark config --keys`")
-    args = parser.parse_args(argv)
-    if not args.write_settings and args.write_configs is None and args.write_keys_doc is None:
-        parser.error("give --write-settings, --write-configs and/or --write-keys-doc")
-    if args.write_settings:
-        _write(SETTINGS_PATH, settings_source())
-    if args.write_configs is not None:
-        for path in map(Path, args.write_configs or sorted(CONFIG_DIR.rglob("*.yaml"))):
-            _write(path, regenerated_config_text(path.read_text(), str(path)))
-    if args.write_keys_doc is not None:
-        _write(args.write_keys_doc, document_with_keys_table(args.write_keys_doc.read_text()))
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

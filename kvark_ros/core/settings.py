@@ -1,6 +1,6 @@
 """Typed settings of the configuration: one frozen dataclass per group of keys, and ``EstimatorConfig``.
 
-Generated from config_schema.KEYS by `python -m kvark_ros.core.config_sources --write-settings` (or
+Generated from config_schema.KEYS by `python -m kvark_ros.tools.generate_sources --write-settings` (or
 `make generated`); do not edit: change the key table and regenerate (the tests check this file).
 """
 from __future__ import annotations

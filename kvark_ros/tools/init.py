@@ -263,7 +263,7 @@ def run(args: argparse.Namespace) -> int:
               "`kvark train` and `kvark replay`. Units are SI (rad, rad/s, N·m, N, s). Nested groups become dotted",
               "ROS parameter names, e.g. filter.ewma_time. Each key's first comment lines are its row of the key",
               "table (kvark_ros/core/config_schema.py; `kvark config --keys` prints them all);",
-              "`python -m kvark_ros.core.config_sources --write-configs FILE` rewrites them, keeping the values",
+              "`python -m kvark_ros.tools.generate_sources --write-configs FILE` rewrites them, keeping the values",
               "and the notes after a lone '#'.",
               "Relative paths (robot_model.urdf, residual_model.model_dir, model_augmentation) are relative to",
               f"this file's folder. The key {ANY_NAMESPACE} applies to the node in any namespace."]

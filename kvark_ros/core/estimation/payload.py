@@ -10,12 +10,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from kvark_ros.core.config_schema import INERTIA_ORDER
+
 if TYPE_CHECKING:
     import pinocchio as pin
 
 
-# The order a user writes an inertia's six values in: geometry_msgs/Inertia's and URDF's.
-MESSAGE_ORDER = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
 Inertia6 = tuple[float, float, float, float, float, float]
 
 
@@ -25,7 +25,7 @@ class Payload:
 
     mass: kg; com: (3,) m in the flange frame; inertia: (6,) kg·m² about the CoM, flange axes, held as
     ``[ixx, iyy, izz, ixy, ixz, iyz]`` (diagonal first, as the plant files write it); the config takes
-    ``MESSAGE_ORDER`` (``from_message_order``).
+    ``INERTIA_ORDER`` (``from_message_order``).
     """
 
     mass: float
@@ -35,7 +35,7 @@ class Payload:
     @classmethod
     def from_message_order(cls, mass: float, com: tuple[float, float, float],
                            inertia: tuple[float, ...]) -> Payload:
-        """The payload of an inertia given in ``MESSAGE_ORDER`` (ixx ixy ixz iyy iyz izz)."""
+        """The payload of an inertia given in ``INERTIA_ORDER`` (ixx ixy ixz iyy iyz izz)."""
         ixx, ixy, ixz, iyy, iyz, izz = (float(v) for v in inertia)
         return cls(float(mass), com, (ixx, iyy, izz, ixy, ixz, iyz))
 
@@ -61,7 +61,13 @@ def inertia_problem(parameters: np.ndarray, tolerance: float = 1e-6) -> str | No
     com = np.asarray(parameters[1:4], dtype=float) / m
     ixx, ixy, iyy, ixz, iyz, izz = (float(v) for v in parameters[4:10])
     origin = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
-    principal = np.linalg.eigvalsh(origin - m * (float(com @ com) * np.eye(3) - np.outer(com, com)))
+    return rotational_inertia_problem(origin - m * (float(com @ com) * np.eye(3) - np.outer(com, com)), tolerance)
+
+
+def rotational_inertia_problem(matrix: np.ndarray, tolerance: float) -> str | None:
+    """Why (3, 3) ``matrix`` is not an inertia about a centre of mass, or None: it must be positive semi-definite,
+    its principal moments obeying the triangle inequality, to ``tolerance`` kg·m²."""
+    principal = np.linalg.eigvalsh(matrix)
     if principal[0] < -tolerance:
         return f"inertia about the centre of mass is not positive (principal moments {np.round(principal, 5).tolist()})"
     if principal[2] > principal[0] + principal[1] + tolerance:
@@ -69,22 +75,16 @@ def inertia_problem(parameters: np.ndarray, tolerance: float = 1e-6) -> str | No
     return None
 
 
-def _is_rotational_inertia(matrix: np.ndarray, tolerance: float = 1e-9) -> bool:
-    """Whether (3, 3) ``matrix`` is an inertia about a centre of mass: positive semi-definite, principal moments
-    obeying the triangle inequality (to ``tolerance`` kg·m²)."""
-    principal = np.linalg.eigvalsh(matrix)
-    return bool(principal[0] >= -tolerance and principal[2] <= principal[0] + principal[1] + tolerance)
-
-
 def old_order_problem(inertia: tuple[float, ...]) -> str | None:
     """Why six inertia values look written in the order this key had before (ixx iyy izz ixy ixz iyz): they are an
-    inertia in that order and not in ``MESSAGE_ORDER``; the same values in ``MESSAGE_ORDER`` to write instead.
-    None when the values are an inertia in ``MESSAGE_ORDER`` or in neither order (the physical check names that)."""
+    inertia in that order and not in ``INERTIA_ORDER``; the same values in ``INERTIA_ORDER`` to write instead.
+    None when the values are an inertia in ``INERTIA_ORDER`` or in neither order (the physical check names that)."""
     in_order = Payload.from_message_order(1.0, (0.0, 0.0, 0.0), inertia).rotational_inertia()
     ixx, iyy, izz, ixy, ixz, iyz = (float(v) for v in inertia)
     as_before = Payload(1.0, inertia=(ixx, iyy, izz, ixy, ixz, iyz)).rotational_inertia()
-    if _is_rotational_inertia(in_order) or not _is_rotational_inertia(as_before):
+    # Config values are finite (the key's check), so each reading is an inertia or has a problem.
+    if rotational_inertia_problem(in_order, 1e-9) is None or rotational_inertia_problem(as_before, 1e-9) is not None:
         return None
     rewritten = ", ".join(f"{v:g}" for v in (ixx, ixy, ixz, iyy, iyz, izz))
-    return (f"is ordered {' '.join(MESSAGE_ORDER)} (geometry_msgs/Inertia, URDF); {list(inertia)} is an inertia "
+    return (f"is ordered {' '.join(INERTIA_ORDER)} (geometry_msgs/Inertia, URDF); {list(inertia)} is an inertia "
             f"only in the former order ixx iyy izz ixy ixz iyz: write [{rewritten}]")

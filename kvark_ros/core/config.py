@@ -190,12 +190,16 @@ def load_config(path: str | os.PathLike, **overrides: Any) -> EstimatorConfig:
     the command runs: ``config/panda.yaml`` names ``../models/panda``).
     """
     source = str(path)
-    document = read_yaml(path, ConfigError, "config file", "pass an existing config such as config/panda.yaml",
-                         "pass a YAML file such as config/panda.yaml")
-    flat = file_parameters(document, source)
+    flat = file_parameters(_read_document(path), source)
     flat.update({key.replace("__", "."): value for key, value in overrides.items()})
     config = config_from_parameters(flat, source)
     return with_resolved_paths(config, Path(path).resolve().parent)
+
+
+def _read_document(path: str | os.PathLike) -> Any:
+    """The YAML document of a config file; ConfigError naming the fix when it is missing or not YAML."""
+    return read_yaml(path, ConfigError, "config file", "pass an existing config such as config/panda.yaml",
+                     "pass a YAML file such as config/panda.yaml")
 
 
 def resolved_path(text: str, folder: Path | None) -> str:
@@ -223,10 +227,7 @@ def launch_parameters(path: str | os.PathLike) -> dict[str, Any]:
     """The dotted parameters a config file gives the node (``file_parameters``: every key of it that applies, in any
     namespace) with relative paths made absolute against the file's folder, as ``kvark`` resolves them: the
     parameter dictionary the launch file passes, which applies under any namespace."""
-    source = str(path)
-    document = read_yaml(path, ConfigError, "config file", "pass an existing config such as config/panda.yaml",
-                         "pass a YAML file such as config/panda.yaml")
-    parameters = file_parameters(document, source)
+    parameters = file_parameters(_read_document(path), str(path))
     folder = Path(path).resolve().parent
     for key in PATH_KEYS:
         if isinstance(parameters.get(key), str):

@@ -44,12 +44,12 @@ from kvark_ros.io import BagError
 from kvark_ros.io.recorded_inputs import read_inputs
 from kvark_ros.io.runs import numerical_failures
 from kvark_ros.core.contact_events import CONTACT_TORQUE
+from kvark_ros.tools.acceptance import JOINT_COVERAGE, verdict
 from kvark_ros.tools.metrics import observer_metrics, static_band
 from kvark_ros.tools.real_pushes import HOLD, RAMP, SETTLE, Pushes, phase_rmse, pushed
 from kvark_ros.tools.replay import run_observer, zero_truth
 
 LEARNED_BASELINES = ("gpadkf", "nnadkf", "gmr_gp")
-JOINT_COVERAGE = 0.90       # K-VARK's coverage95 of zero on every joint (no upper bound: the static band at rest)
 
 
 def split(inputs: EstimatorInputs, train_share: float, rate: float,
@@ -142,17 +142,16 @@ def interval_lines(results: dict[str, Any]) -> list[str]:
         entries = results.get(model) or {}
         kvark = entries.get("kvark") or {}
         per_joint, score = kvark.get("coverage95_per_joint"), kvark.get("interval_score95")
-        word = (lambda ok: "pass" if ok else "FAIL") if judged else (lambda ok: "met" if ok else "not met")
         if per_joint:
             lines.append(f"- {model}: K-VARK coverage95 of 0 per joint {min(per_joint):.3f}-{max(per_joint):.3f} "
-                         f"(≥ {JOINT_COVERAGE} on every joint: {word(min(per_joint) >= JOINT_COVERAGE)})")
+                         f"(≥ {JOINT_COVERAGE} on every joint: {verdict(min(per_joint) >= JOINT_COVERAGE, judged)})")
         others = {name: entry["interval_score95"] for name, entry in entries.items()
                   if name != "kvark" and entry.get("interval_score95") is not None}
         if score is not None and others:
             best = min(others, key=others.get)
             ok = score <= others[best]
             lines.append(f"- {model}: K-VARK interval score {score:.3f} N·m against the best other observer with an "
-                         f"interval, {best} {others[best]:.3f} (no worse than every other: {word(ok)})")
+                         f"interval, {best} {others[best]:.3f} (no worse than every other: {verdict(ok, judged)})")
     return lines
 
 
@@ -247,7 +246,8 @@ def _run_real(args: argparse.Namespace, out: Path) -> int:
     from kvark_ros.gap.diagnose import train_on_diagnosis
     log(f"[benchmark] step 3/{steps}: diagnosis of the training part"
         + ("" if base is None else f" against the calibration {calibration}") + ", training on the augmented model")
-    augmented, results["augmentation"] = train_on_diagnosis(config, RobotModel.from_config(config, base), [train], out,
+    calibrated = robot if base is None else RobotModel.from_config(config, base)
+    augmented, results["augmentation"] = train_on_diagnosis(config, calibrated, [train], out,
                                                             baselines=not args.no_baselines, log=log)
     log(f"[benchmark] step 4/{steps}: {len(observers)} observers on the held-out part, augmented model")
     results["augmented"] = evaluate(config, augmented, held, observers, log)

@@ -147,10 +147,11 @@ def contact_warning(bag: str, run: RecordedRun, kept: EstimatorInputs, start: fl
     if truth is None or not len(kept):
         return None
     within = (truth.stamp >= kept.stamp[0]) & (truth.stamp <= kept.stamp[-1])
-    size = np.nan_to_num(np.abs(truth.effort[within]), nan=0.0)
-    over = np.flatnonzero(touching(truth.effort[within]))
+    effort = truth.effort[within]
+    over = np.flatnonzero(touching(effort))
     if not len(over):
         return None
+    size = np.nan_to_num(np.abs(effort), nan=0.0)
     row, joint = np.unravel_index(np.argmax(size), size.shape)
     elapsed = truth.stamp[within][over] - start
     return (f"{bag}: ground truth shows external torque up to {size[row, joint]:.1f} N·m on {run.joint_names[joint]} "

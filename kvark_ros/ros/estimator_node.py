@@ -256,9 +256,7 @@ class EstimatorNode(Node):
         q, qd = position[index], velocity[index]
         if self._torque_source == "joint_states_effort":
             effort = numbers["effort"]
-            tau_m = effort[index] if len(effort) == count else None
-            if self._effort is not None and tau_m is not None:
-                tau_m = self._effort.apply(tau_m)
+            tau_m = self._tau_m(effort[index]) if len(effort) == count else None
             self._estimate_all(self._pairer.stamped_state(Sample(stamp, q, qd, tau_m, tag)))
         else:
             key = self._order_key(info, stamp)
@@ -283,9 +281,7 @@ class EstimatorNode(Node):
         else:
             self._counts[Drop.BAD_COMMAND] += 1
             return
-        if self._effort is not None:
-            tau_m = self._effort.apply(tau_m)
-        self._estimate_all(self._pairer.command(self._order_key(info, None), tau_m))
+        self._estimate_all(self._pairer.command(self._order_key(info, None), self._tau_m(tau_m)))
 
     def _command_state(self, raw: bytes, info: dict) -> None:
         if (decoded := self._decoded(self._commands, raw, Drop.BAD_COMMAND, ("sec", "nanosec", "effort"))) is None:
@@ -296,8 +292,11 @@ class EstimatorNode(Node):
             self._counts[Drop.BAD_COMMAND] += 1
             return
         key = self._order_key(info, stamp_seconds(int(numbers["sec"][0]), int(numbers["nanosec"][0])))
-        tau_m = numbers["effort"][index]
-        self._estimate_all(self._pairer.command(key, tau_m if self._effort is None else self._effort.apply(tau_m)))
+        self._estimate_all(self._pairer.command(key, self._tau_m(numbers["effort"][index])))
+
+    def _tau_m(self, values: np.ndarray) -> np.ndarray:
+        """τ_m (n,) N·m of the effort values a message holds: ``input.effort_scale``/``effort_offset`` applied."""
+        return values if self._effort is None else self._effort.apply(values)
 
     async def _on_robot_description(self, msg: String) -> None:
         xml = msg.data

@@ -229,7 +229,7 @@ def beyond_priors(fitter: Fitter, terms: Sequence[Term], gains: Callable[[np.nda
         lo, hi = probe.bounds(priors)
         over = np.maximum(mine - hi, -np.inf if EFFECTS_BY_NAME[name].nonnegative else lo - mine)
         edge = np.where(np.isfinite(wide_hi), (1.0 - BOUND_SHARE) * wide_hi, np.inf)    # within 1 % of physics
-        at_physics = (mine >= edge) | (~EFFECTS_BY_NAME[name].nonnegative & (mine <= -edge))
+        at_physics = (mine >= edge) | ((not EFFECTS_BY_NAME[name].nonnegative) & (mine <= -edge))
         if name == "payload":
             over, at_physics = over[:1], at_physics[:1]
         after = np.sqrt(np.mean(np.square(r_he), axis=0))

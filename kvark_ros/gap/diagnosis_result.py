@@ -18,7 +18,7 @@ from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.learning.training import SAVGOL_WINDOW
 from kvark_ros.gap.admissible import beyond_priors, prior_fields
 from kvark_ros.gap.diagnosis_report import Diagnosis
-from kvark_ros.gap.effects import Priors, Term, physical_parameters, theta_split, variants
+from kvark_ros.gap.effects import Priors, Term, physical_parameters, variants
 from kvark_ros.gap.fitting import Fitter
 from kvark_ros.gap.known_load import KnownLoad, base_gains, gain_record, gain_width, load_centre
 from kvark_ros.gap.plausibility import (RAW_QDD_WINDOW, beyond_prior_warning, flange_change, flange_mass_regrouping,
@@ -41,14 +41,15 @@ class DiagnosisInputs:
     started: float = field(default_factory=time.perf_counter)
 
 
-def _gain_half_widths(inputs: DiagnosisInputs, effects: Sequence[dict]) -> tuple[np.ndarray, dict[str, Any]]:
+def _gain_half_widths(inputs: DiagnosisInputs, effects: Sequence[dict],
+                      centre: dict[str, Any] | None) -> tuple[np.ndarray, dict[str, Any]]:
     """The drive gains' 95 % half-widths (n,) a payload's mass is read through, and the ``drive_gains`` record: this
-    diagnosis's known-load calibration, else the calibration it runs against (``known_load.base_gains``), else
-    unidentified (the prior's bound on every joint)."""
+    diagnosis's known-load calibration (with the load's ``centre`` of mass, ``known_load.load_centre``), else the
+    calibration it runs against (``known_load.base_gains``), else unidentified (the prior's bound on every joint)."""
     robot, priors = inputs.robot, inputs.priors
     record = base_gains(robot) if inputs.load is None else None
     if record is None:
-        record = gain_record(effects, robot.n, priors.gain_bound, inputs.load, priors.torque_measurement)
+        record = gain_record(effects, robot.n, priors.gain_bound, inputs.load, priors.torque_measurement, centre)
     half = np.minimum(np.asarray(record["ci95"], dtype=float), priors.gain_bound)
     return half, record
 
@@ -78,9 +79,7 @@ def state(inputs: DiagnosisInputs, fitter: Fitter, terms: list[Term], fit: Fit, 
                                "held_out_rmse_before": info["held_out_rmse_before"],
                                "held_out_rmse_after": info["held_out_rmse_after"]})
     centre = None if inputs.load is None else load_centre(inputs.load, *blocks[len(terms)])
-    half, gains = _gain_half_widths(inputs, result_effects)
-    if inputs.load is not None:
-        gains["calibrated_with"].update(centre)
+    half, gains = _gain_half_widths(inputs, result_effects, centre)
     for index, (term, effect) in enumerate(zip(terms, result_effects)):
         if term.name == "payload":       # its mass is read through the gains: their half-widths join the fit's
             th = blocks[index][0]
@@ -89,7 +88,7 @@ def state(inputs: DiagnosisInputs, fitter: Fitter, terms: list[Term], fit: Fit, 
             effect["parameters"]["mass_gain_ci95"] = width
             if "mass" in effect["ci95"]:
                 effect["ci95"]["mass"] = float(np.hypot(effect["ci95"]["mass"], width))
-    thetas = theta_split(terms, theta)
+    thetas = [th for th, _ in blocks[:len(terms)]]
     gap_before, gap_after = rmse(fitter.held.gap), rmse(r_he)
     warnings = [*(beyond_prior_warning(record, priors, names) for record in beyond),
                 *plausibility_warnings(terms, thetas, priors, names)]
@@ -122,7 +121,7 @@ def state(inputs: DiagnosisInputs, fitter: Fitter, terms: list[Term], fit: Fit, 
             f"{name} {g:.3f} ± {h:.3f}" for name, g, h in zip(names, gains["gain"], gains["ci95"])))
     for warning in warnings:
         log(f"[diagnose] warning: {warning}")
-    return Diagnosis(result, terms, [blocks[i][0] for i in range(len(terms))], fitter.held, r_he, sample_interval)
+    return Diagnosis(result, terms, thetas, fitter.held, r_he, sample_interval)
 
 
 def priors_in_force(priors: Priors) -> dict:

@@ -18,7 +18,7 @@ through them afterwards (``gain_width``).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -106,8 +106,7 @@ def load_signals(s: Signals, loaded: np.ndarray, load: KnownLoad) -> Signals:
     index = [1 + (*FIRST_MOMENTS, *SECOND_MOMENTS).index(name) for name in load.unknown]
     known = s.payload_regressor @ load.known_parameters()
     mask = loaded.astype(float)[:, None]
-    return Signals(s.q, s.qd, s.qdd, s.tau_m, s.gap - mask * known, s.payload_regressor, s.position_jacobian,
-                   s.link_regressor, known_load=s.payload_regressor[:, :, index] * mask[:, :, None])
+    return replace(s, gap=s.gap - mask * known, known_load=s.payload_regressor[:, :, index] * mask[:, :, None])
 
 
 def calibrate_with(fitter: Fitter, load: KnownLoad) -> None:

@@ -110,9 +110,8 @@ def run(args: argparse.Namespace) -> int:
         (folder / "joint_trajectory.yaml").write_text(_trajectory_yaml(names, sent, q, qd, qdd))
         raw = joint_trajectory_message(names, sent, q, qd, qdd)
         with BagWriter(folder / "joint_trajectory") as bag:
-            bag.write_messages([Messages(args.topic, JOINT_TRAJECTORY, np.zeros(1, dtype=np.int64),
-                                         np.frombuffer(raw, dtype=np.uint8)[None, :])], np.zeros(1, dtype=np.intp),
-                               np.zeros(1, dtype=np.intp))
+            bag.write_block(Messages(args.topic, JOINT_TRAJECTORY, np.zeros(1, dtype=np.int64),
+                                     np.frombuffer(raw, dtype=np.uint8)[None, :]))
     print(f"[excitation] wrote {args.out}: excitation.csv, joint_trajectory.yaml, joint_trajectory/ (on {args.topic}); "
           f"{len(times)} points at {args.rate:g} Hz, starting {args.start_delay:g} s after the message at the centre "
           f"pose, at rest", flush=True)

@@ -148,9 +148,9 @@ def point_mass_moments(theta: np.ndarray, radius: float = 0.0) -> np.ndarray:
 def consistent(fitter: Fitter, terms: Sequence[Term], *fit: np.ndarray) -> tuple:
     """A fit of ``terms`` refitted until every body its payload and link_inertia terms change is physically
     consistent: the prior of each offending body is tightened toward the URDF (σ set to ``first_prior`` where it
-    was ∞, else halved; at most ``MAX_PRIOR_HALVINGS`` times), a payload's second moments toward those of a point
-    mass of its fitted mass and centre (``point_mass_moments``: shrinking them toward zero about the flange origin
-    would put a massive payload's inertia about its own centre below zero). Returns the last fit (check it with
+    was ∞, else halved; at most ``MAX_PRIOR_HALVINGS`` times), a payload's second moments toward those of a solid
+    sphere of ``LOAD_RADIUS`` at its fitted mass and centre (``point_mass_moments``: shrinking them toward zero about
+    the flange origin would put a massive payload's inertia about its own centre below zero). Returns the last fit (check it with
     ``bad_bodies``).
 
     The data identify only some combinations of a link's parameters (a base link turning about z shows only

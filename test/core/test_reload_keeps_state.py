@@ -5,6 +5,7 @@ with ``Estimator.continue_from`` reloading the same model must change no output,
 """
 from __future__ import annotations
 
+import shutil
 from dataclasses import replace
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from kvark_ros.core.config import OBSERVER_NAMES, load_config
 from kvark_ros.core.estimation.estimator import Estimate, Estimator
 from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.core.estimation.observers.momentum_observers import make_momentum_observer
+from kvark_ros.core.estimation.residual import ResidualModelError
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.io import read_run
 from kvark_ros.io.recorded_inputs import estimator_inputs
@@ -151,3 +153,17 @@ def test_state_is_a_copy(config, trained, inputs):
     estimator.observer.load_state(state)
     state["tau"] += 1.0
     assert np.array_equal(estimator.observer.tau, tau + 1.0)
+
+
+def test_an_estimator_reads_only_the_residual_its_observer_runs(config, tmp_path):
+    """A reload reads the KMP and, for a learned baseline, that baseline alone: the other baselines' files are not
+    read (most of a reload's work, done while samples arrive), so a damaged one stops only the observer using it,
+    with its file named."""
+    shutil.copytree(MODEL, tmp_path / "model")
+    (tmp_path / "model" / "mlp.npz").write_bytes(b"not an npz file")
+    config = replace(config, model_dir=str(tmp_path / "model"))
+    assert dict(Estimator.from_config(config, observer="kvark").trained.baselines) == {}
+    assert set(Estimator.from_config(config, observer="gmr_gp").trained.baselines) == {"gmr_gp"}
+    with pytest.raises(ResidualModelError, match="mlp.npz"):
+        Estimator.from_config(config, observer="nnadkf")
+    assert set(load_model(MODEL, config.joint_names).baselines) == {"gmr_gp", "gpadkf", "nnadkf"}

@@ -204,7 +204,7 @@ class Estimator:
         if name == "oracle" and urdf is None:
             urdf = getattr(oracle, "urdf", None)
         trained = trained or load_model(config.model_dir, config.joint_names,
-                                        urdf_sha256(config.urdf) if urdf is None else None)
+                                        urdf_sha256(config.urdf) if urdf is None else None, baselines=(name,))
         robot = RobotModel.from_config(config, model_augmentation(config, trained), urdf)
         return cls(config, robot, make_observer(name, trained, config.filter, oracle), trained)
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterable, Mapping
 
 import yaml
 
@@ -88,9 +88,12 @@ def write_model_files(directory: Path, model: TrainedModel) -> None:
 
 
 def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None = None,
-               urdf_sha256: str | None = None) -> TrainedModel:
+               urdf_sha256: str | None = None, baselines: Iterable[str] | None = None) -> TrainedModel:
     """Read a model directory; ``joint_names`` (the config's) must match the model's exactly, and
-    ``urdf_sha256`` (of the URDF the estimator will use) the one the model was trained with, if recorded."""
+    ``urdf_sha256`` (of the URDF the estimator will use) the one the model was trained with, if recorded.
+
+    ``baselines``: the learned baselines to read (None: every one the file lists). An estimator reads the one its
+    observer runs, or none: reading the other three is most of a reload's work, done while samples arrive."""
     path = Path(directory) / MODEL_FILE
     if Path(directory).exists() and not Path(directory).is_dir():
         raise ResidualModelError(f"{directory}: not a model directory; pass the directory `kvark train` wrote")
@@ -127,15 +130,17 @@ def load_model(directory: str | os.PathLike, joint_names: tuple[str, ...] | None
     unknown = sorted(set(baseline_tunings) - set(LEARNED_BASELINES))
     if unknown:
         raise ResidualModelError(f"{path}: unknown baseline '{unknown[0]}'; retrain the model")
-    baselines = {name: LEARNED_BASELINES[name].load(directory) for name in baseline_tunings}
+    if baselines is not None:
+        baseline_tunings = {name: value for name, value in baseline_tunings.items() if name in set(baselines)}
+    learned = {name: LEARNED_BASELINES[name].load(directory) for name in baseline_tunings}
     augmentation = _load_augmentation(Path(directory), names, document.get("augmentation_sha256"))
     sizes = {residual.n_joints, len(tuning.process_noise_density)}
-    sizes |= {model.n_joints for model in baselines.values()}
+    sizes |= {model.n_joints for model in learned.values()}
     if interval_scale is not None:
         sizes.add(len(interval_scale.scale))
     if sizes != {len(names)}:
         raise ResidualModelError(f"{path}: residual models and filter tunings disagree on the number of joints")
-    return TrainedModel(robot, names, residual, tuning, dict(document.get("info") or {}), baselines,
+    return TrainedModel(robot, names, residual, tuning, dict(document.get("info") or {}), learned,
                         baseline_tunings, momentum_noise, augmentation, sample_period, stiction, interval_scale)
 
 

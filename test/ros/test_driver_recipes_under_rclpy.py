@@ -60,6 +60,7 @@ FRANKA_CONFIG = ROOT / "config" / "drivers" / "franka_panda.yaml"
 # Topics recorded per node: the Franka node's stamped outputs (paired below), the others' τ_ext and wrench.
 STAMPED = ("external_joint_torque", "external_joint_torque_stddev_stamped", "external_wrench",
            "external_wrench_with_covariance", "contact_state")
+INPUT_TOPIC = {"franka": "/franka/joint_states", "ur": "/joint_states", "lbr": "/lbr/joint_states"}
 MSGTYPES = {"external_joint_torque": JOINT_STATE, "external_joint_torque_stddev_stamped": JOINT_STATE,
             "external_wrench": "geometry_msgs/msg/WrenchStamped", "contact_state": JOINT_STATE,
             "external_wrench_with_covariance": "geometry_msgs/msg/TwistWithCovarianceStamped"}
@@ -109,17 +110,28 @@ def recipes(tmp_path_factory) -> list[Recipe]:
     return made
 
 
-def _play(recipe: Recipe, start: threading.Event) -> None:
-    """Every topic of the recipe's bag, as the driver publishes it, at real time from ``start``."""
+def _states(recipe: Recipe) -> int:
+    """How many joint states the recipe's node estimates on: those of its driver's joint-state topic."""
+    return len(read_messages(recipe.bag, {INPUT_TOPIC[recipe.name]: ("input", {JOINT_STATE})}))
+
+
+def _play(recipe: Recipe, start: threading.Barrier) -> None:
+    """Every topic of the recipe's bag, as the driver publishes it, at real time, once every player's topics have
+    their subscribers (``start``: one party per player and the recording thread)."""
     topics = {connection: ("driver topic", {JOINT_STATE}) for connection in
-              (("/franka/joint_states", "/joint_states") if recipe.name == "franka" else
-               ("/joint_states",) if recipe.name == "ur" else ("/lbr/joint_states",))}
+              (("/franka/joint_states", "/joint_states") if recipe.name == "franka" else (INPUT_TOPIC[recipe.name],))}
     player = BagPlayer(Recording(tuple(topics), read_messages(recipe.bag, topics)),
                        namespace=f"player_{recipe.name}")
-    assert player.wait_for_subscribers(30.0), f"{recipe.name}: a topic without its subscriber"
-    start.wait()
-    player.play(1.0)
-    player.destroy_node()
+    try:
+        assert player.wait_for_subscribers(30.0), f"{recipe.name}: a topic without its subscriber"
+        start.wait(60.0)
+        time.sleep(2.0)         # and the nodes' subscriptions their publishers: the other side of the match, later
+        player.play(1.0)
+    except BaseException:
+        start.abort()
+        raise
+    finally:
+        player.destroy_node()
 
 
 def _status(arrays: list, node: str, part: str):
@@ -194,17 +206,19 @@ def _record_while_playing(recipes: list[Recipe], processes: list, logs: list) ->
                                                                              recipe.namespace or "/")
         seen = len(diagnostics)                 # each node's next /diagnostics tick notices our subscriptions
         wait(lambda: len(diagnostics) >= seen + 3, 10.0, "no /diagnostics tick")
-        start = threading.Event()
+        start = threading.Barrier(len(recipes) + 1)
         players = [threading.Thread(target=_play, args=(recipe, start)) for recipe in recipes]
         for player in players:
             player.start()
-        time.sleep(2.0)                         # the three players' discovery
-        start.set()
+        start.wait(60.0)                        # every player's topics have their subscribers
         for player in players:
             player.join(60.0)
+        # until no output came for 1.5 s, or for 0.3 s once every node has published an estimate for each joint
+        # state but its first (what a late extra estimate would then have to beat: a node publishes within ms)
+        expected = [_states(recipe) - 1 for recipe in recipes]
         counts, quiet = None, time.monotonic()
-        while time.monotonic() - quiet < 1.5:   # until no output came for 1.5 s
-            time.sleep(0.1)
+        while time.monotonic() - quiet < (0.3 if counts == expected else 1.5):
+            time.sleep(0.05)
             now = [len(r.outputs["external_joint_torque"]) for r in recipes]
             if now != counts:
                 counts, quiet = now, time.monotonic()
@@ -241,8 +255,7 @@ def test_each_drivers_topics_into_the_node_from_its_recipe_equal_replay(played, 
     config = load_config(recipe.config)
     torque = [(_stamp(m), np.asarray(m.effort), 0) for m in recipe.messages("external_joint_torque")]
     figures = node_check.compare(torque, config, config.model_dir, str(recipe.bag))
-    topic = {"franka": "/franka/joint_states", "ur": "/joint_states", "lbr": "/lbr/joint_states"}[driver]
-    states = len(read_messages(recipe.bag, {topic: ("input", {JOINT_STATE})}))
+    states = _states(recipe)
     expected = states - 1                                  # every joint state but the first (it starts the filter)
     assert figures["estimates_expected"] == expected and states == {"franka": 2001, "ur": 1000, "lbr": 200}[driver]
     assert figures["estimates_received"] == figures["estimates_matched"] == expected, figures

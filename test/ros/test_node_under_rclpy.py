@@ -46,7 +46,6 @@ from kvark_ros.core.config import NODE_NAME, load_config  # noqa: E402
 from kvark_ros.ros import node_check, node_process  # noqa: E402
 
 OUT = f"/{NODE_NAME}"
-pytestmark = pytest.mark.realtime        # a node process keeping up with real time: never beside another test process
 DOMAINS = iter(range(201, 233))          # one ROS domain per node process of this module (Fast DDS: at most 232)
 
 
@@ -81,6 +80,7 @@ def _parameters_file(tmp_path: Path, **changes) -> Path:
     loaded = load_config(config)
     return node_check.node_parameters_file(config, loaded, loaded.model_dir, tmp_path)
 
+@pytest.mark.realtime        # a node process keeping up with real time: never beside another test process
 @pytest.mark.parametrize("rate, load_cores", [(1.0, 0), (2.0, 1)], ids=["500Hz", "1kHz-other-core-busy"])
 def test_node_process_gives_replays_torque_on_every_sample_through_a_reload(tmp_path, rate, load_cores):
     """bags/panda_contact played at real time (500 Hz), and twice as fast (1 kHz) with a busy process beside the

@@ -57,7 +57,6 @@ from rclpy.qos import DurabilityPolicy, QoSProfile
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
-from threadpoolctl import threadpool_limits
 
 from kvark_ros.core.config import NODE_NAME, ROBOT_DESCRIPTION, ConfigError
 from kvark_ros.core.estimation.estimator import Estimate, Estimator
@@ -68,7 +67,7 @@ from kvark_ros.core.estimation.wrench_output import WrenchOutput
 from kvark_ros.io.cdr_messages import Decoder
 from kvark_ros.io.common import FLOAT64_ARRAY, JOINT_STATE
 from kvark_ros.ros import input_loop, parameters
-from kvark_ros.ros.builds import SWITCH_INTERVAL, Built, build, build_off_path
+from kvark_ros.ros.builds import SWITCH_INTERVAL, Built, build, build_off_path, one_blas_thread
 from kvark_ros.ros.diagnostics import NOT_READY, SERVICE_RESET, StatusBuilder, Windows
 from kvark_ros.ros.input_loop import InputGroup, locked, publication_ns
 from kvark_ros.ros.publishers import SUBSCRIBER_CHECK, EstimatePublishers, Stamp, qos_profile
@@ -414,10 +413,7 @@ class EstimatorNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """``ros2 run kvark_ros estimator_node``: spin the node until Ctrl-C or shutdown."""
-    # BLAS on one thread for the node's life: its matrices are small, and OpenBLAS's second thread, waiting for a
-    # core the controller holds, made a reload's seven triangular solves (the KMP's factors) take 29 ms instead of
-    # 0.3 while samples waited. The figures do not change (one thread or two: the same bits on the committed bags).
-    threadpool_limits(limits=1)
+    one_blas_thread()
     rclpy.init(args=args)
     try:
         node = EstimatorNode(parameters.parameter_files(sys.argv if args is None else args))

@@ -51,6 +51,7 @@ from kvark_ros.io.recorded_inputs import read_inputs  # noqa: E402
 from kvark_ros.io.bag_messages import read_messages  # noqa: E402
 from kvark_ros.io.common import JOINT_STATE, typestore  # noqa: E402
 from kvark_ros.ros import node_check, node_process, publishers  # noqa: E402
+from kvark_ros.ros.input_loop import InputGroup, InputLoop  # noqa: E402
 from kvark_ros.ros.player import BagPlayer, Recording, input_recording  # noqa: E402
 from kvark_ros.tools.replay import run_observer  # noqa: E402
 from kvark_ros.tools.synthetic import train_synthetic  # noqa: E402
@@ -115,13 +116,15 @@ def _states(recipe: Recipe) -> int:
     return len(read_messages(recipe.bag, {INPUT_TOPIC[recipe.name]: ("input", {JOINT_STATE})}))
 
 
-def _play(recipe: Recipe, start: threading.Barrier) -> None:
+def _play(recipe: Recipe, start: threading.Barrier, players: list[BagPlayer]) -> None:
     """Every topic of the recipe's bag, as the driver publishes it, at real time, once every player's topics have
-    their subscribers (``start``: one party per player and the recording thread)."""
+    their subscribers (``start``: one party per player and the recording thread). The player goes to ``players``,
+    to be destroyed once the outputs have stopped: destroyed at once, a busy machine lost its last messages."""
     topics = {connection: ("driver topic", {JOINT_STATE}) for connection in
               (("/franka/joint_states", "/joint_states") if recipe.name == "franka" else (INPUT_TOPIC[recipe.name],))}
     player = BagPlayer(Recording(tuple(topics), read_messages(recipe.bag, topics)),
                        namespace=f"player_{recipe.name}")
+    players.append(player)
     try:
         assert player.wait_for_subscribers(30.0), f"{recipe.name}: a topic without its subscriber"
         start.wait(60.0)
@@ -130,8 +133,6 @@ def _play(recipe: Recipe, start: threading.Barrier) -> None:
     except BaseException:
         start.abort()
         raise
-    finally:
-        player.destroy_node()
 
 
 def _status(arrays: list, node: str, part: str):
@@ -174,12 +175,18 @@ def _record_while_playing(recipes: list[Recipe], processes: list, logs: list) ->
     diagnostics: list = []
     client.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 100)
     reliable = QoSProfile(depth=5000, reliability=ReliabilityPolicy.RELIABLE)
-    subscriptions = []
+    # The outputs (~6 000 messages/s) on the node's own input loop, every ready message per wake: lighter than
+    # rclpy's Python executor, which a busy machine could leave 1 s behind (the writers keep the last 1 000).
+    group, subscriptions, players = InputGroup(), [], []
     for recipe in recipes:
         for topic in (STAMPED if recipe.name == "franka" else ("external_joint_torque", "external_wrench")):
-            kind = publishers.TOPICS[topic]
-            subscriptions.append(client.create_subscription(kind, f"{recipe.node}/{topic}",
-                                                            recipe.outputs[topic].append, reliable, raw=True))
+            subscriptions.append(client.create_subscription(
+                publishers.TOPICS[topic], f"{recipe.node}/{topic}",
+                lambda raw, _info, store=recipe.outputs[topic]: store.append(raw), reliable, callback_group=group,
+                raw=True))
+    outputs = InputLoop(client, subscriptions, group, threading.Lock())
+    recording = threading.Thread(target=outputs.spin, daemon=True)
+    recording.start()
     executor = SingleThreadedExecutor()
     executor.add_node(client)
     spinning = threading.Thread(target=executor.spin, daemon=True)
@@ -207,12 +214,12 @@ def _record_while_playing(recipes: list[Recipe], processes: list, logs: list) ->
         seen = len(diagnostics)                 # each node's next /diagnostics tick notices our subscriptions
         wait(lambda: len(diagnostics) >= seen + 3, 10.0, "no /diagnostics tick")
         start = threading.Barrier(len(recipes) + 1)
-        players = [threading.Thread(target=_play, args=(recipe, start)) for recipe in recipes]
-        for player in players:
-            player.start()
+        threads = [threading.Thread(target=_play, args=(recipe, start, players)) for recipe in recipes]
+        for thread in threads:
+            thread.start()
         start.wait(60.0)                        # every player's topics have their subscribers
-        for player in players:
-            player.join(60.0)
+        for thread in threads:
+            thread.join(60.0)
         # until no output came for 1.5 s, or for 0.3 s once every node has published an estimate for each joint
         # state but its first (what a late extra estimate would then have to beat: a node publishes within ms)
         expected = [_states(recipe) - 1 for recipe in recipes]
@@ -223,6 +230,10 @@ def _record_while_playing(recipes: list[Recipe], processes: list, logs: list) ->
             if now != counts:
                 counts, quiet = now, time.monotonic()
     finally:
+        for player in players:
+            player.destroy_node()
+        outputs.stop()
+        recording.join(10.0)
         executor.shutdown()
         client.destroy_node()
 

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from kvark_ros.io.common import BOOL, FLOAT64_ARRAY, JOINT_STATE, WRENCH_STAMPED
+from kvark_ros.io.common import BOOL, FLOAT64_ARRAY, JOINT_STATE, TWIST_WITH_COVARIANCE_STAMPED, WRENCH_STAMPED
 
 __all__ = ["Layout", "WORD", "message_fields", "scatter", "windows"]
 
@@ -96,12 +96,19 @@ def _wrench_stamped(walk: _Walk) -> None:
     walk.number("wrench", "f8", 6)         # force x, y, z then torque x, y, z
 
 
+def _twist_with_covariance_stamped(walk: _Walk) -> None:
+    walk.header()
+    walk.number("wrench", "f8", 6)         # twist linear x, y, z then angular x, y, z
+    walk.number("covariance", "f8", 36)
+
+
 def _bool(walk: _Walk) -> None:
     walk.number("data", "u1")
 
 
 _WALKS: dict[str, Callable[[_Walk], None]] = {
     JOINT_STATE: _joint_state, FLOAT64_ARRAY: _float64_array, WRENCH_STAMPED: _wrench_stamped, BOOL: _bool,
+    TWIST_WITH_COVARIANCE_STAMPED: _twist_with_covariance_stamped,
 }
 
 
@@ -117,6 +124,11 @@ def message_fields(msg: Any, msgtype: str) -> dict[str, npt.NDArray[Any]]:
         stamp, force, torque = msg.header.stamp, msg.wrench.force, msg.wrench.torque
         values = {"sec": [stamp.sec], "nanosec": [stamp.nanosec],
                   "wrench": [force.x, force.y, force.z, torque.x, torque.y, torque.z]}
+    elif msgtype == TWIST_WITH_COVARIANCE_STAMPED:
+        stamp, linear, angular = msg.header.stamp, msg.twist.twist.linear, msg.twist.twist.angular
+        values = {"sec": [stamp.sec], "nanosec": [stamp.nanosec],
+                  "wrench": [linear.x, linear.y, linear.z, angular.x, angular.y, angular.z],
+                  "covariance": msg.twist.covariance}
     else:
         values = {"data": [msg.data]}
     return {name: np.asarray(value).reshape(1, -1) for name, value in values.items()}

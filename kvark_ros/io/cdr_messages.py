@@ -21,16 +21,13 @@ import numpy as np
 import numpy.typing as npt
 
 from kvark_ros.io.cdr_arrays import Layout, message_fields
-from kvark_ros.io.common import BOOL, FLOAT64_ARRAY, JOINT_STATE, WRENCH_STAMPED, typestore
+from kvark_ros.io.common import (BOOL, FLOAT64_ARRAY, JOINT_STATE, TWIST_WITH_COVARIANCE_STAMPED, WRENCH_STAMPED,
+                                 typestore)
 
 __all__ = ["Decoder", "Template", "bool_message", "float64_array_template", "joint_state_template",
            "wrench_template", "wrench_with_covariance_template", "joint_trajectory_message",
            "TWIST_WITH_COVARIANCE_STAMPED", "JOINT_TRAJECTORY"]
 JOINT_TRAJECTORY = "trajectory_msgs/msg/JointTrajectory"
-
-# The stamped message of common_interfaces that holds a 6-vector and its 6×6 covariance: the node's wrench with its
-# covariance (geometry_msgs has no WrenchWithCovarianceStamped).
-TWIST_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/TwistWithCovarianceStamped"
 
 Numbers = dict[str, npt.NDArray[Any]]
 
@@ -182,25 +179,12 @@ def wrench_template(frame_id: str) -> Template:
 def wrench_with_covariance_template(frame_id: str) -> Template:
     """geometry_msgs/TwistWithCovarianceStamped in ``frame_id`` carrying a wrench: ``twist.linear`` the force,
     ``twist.angular`` the torque, ``covariance`` their 6×6 covariance row-major; fields ``sec``, ``nanosec``,
-    ``wrench`` (6) and ``covariance`` (36). Encoding only (the node publishes it, nothing here decodes it).
-
-    Its CDR: the header (sec, nanosec, frame_id as a uint32 length and its bytes), then 42 float64 aligned to 8
-    bytes after the 4-byte encapsulation header; checked against what rosbags serialised."""
+    ``wrench`` (6) and ``covariance`` (36)."""
     types = typestore().types
     zero = types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
-    message = types[TWIST_WITH_COVARIANCE_STAMPED](header=_header(frame_id), twist=types[
-        "geometry_msgs/msg/TwistWithCovariance"](twist=types["geometry_msgs/msg/Twist"](linear=zero, angular=zero),
-                                                  covariance=np.zeros(36)))
-    raw = bytes(typestore().serialize_cdr(message, TWIST_WITH_COVARIANCE_STAMPED))
-    order = "<" if raw[1] else ">"
-    end = 16 + int.from_bytes(raw[12:16], "little" if order == "<" else "big")    # after frame_id
-    values = 4 + -(-(end - 4) // 8) * 8
-    assert values + 42 * 8 == len(raw), "TwistWithCovarianceStamped: unexpected CDR layout"
-    floats = np.dtype(order + "f8")
-    fields = {"sec": (4, np.dtype(order + "i4"), np.dtype("i4"), 1),
-              "nanosec": (8, np.dtype(order + "u4"), np.dtype("u4"), 1),
-              "wrench": (values, floats, np.dtype("f8"), 6), "covariance": (values + 48, floats, np.dtype("f8"), 36)}
-    return Template(message, raw, (), fields)
+    return _template(TWIST_WITH_COVARIANCE_STAMPED, types[TWIST_WITH_COVARIANCE_STAMPED](
+        header=_header(frame_id), twist=types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=types["geometry_msgs/msg/Twist"](linear=zero, angular=zero), covariance=np.zeros(36))))
 
 
 def joint_trajectory_message(joint_names: Sequence[str], times: np.ndarray, positions: np.ndarray,

@@ -20,6 +20,9 @@ FloatArray = npt.NDArray[np.float64]
 JOINT_STATE = "sensor_msgs/msg/JointState"
 FLOAT64_ARRAY = "std_msgs/msg/Float64MultiArray"
 WRENCH_STAMPED = "geometry_msgs/msg/WrenchStamped"
+# The stamped message of common_interfaces that holds a 6-vector and its 6×6 covariance: the node's wrench with its
+# covariance (geometry_msgs has no WrenchWithCovarianceStamped).
+TWIST_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/TwistWithCovarianceStamped"
 BOOL = "std_msgs/msg/Bool"
 
 NS_PER_SECOND = 1_000_000_000   # bags store integer nanosecond stamps

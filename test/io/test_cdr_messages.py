@@ -157,7 +157,8 @@ def test_templates_encode_what_rosbags_decodes():
 @pytest.mark.parametrize("frame", ["", "base", "panda_link0", "a_frame_id_of_some_length"])
 def test_a_wrench_with_its_covariance_and_the_flags_encode_what_rosbags_decodes(frame):
     """TwistWithCovarianceStamped carrying a wrench (linear = force, angular = torque) and its 6×6 covariance, for
-    frame ids whose lengths put the numbers at every 8-byte alignment; the flags as a JointState's positions."""
+    frame ids whose lengths put the numbers at every 8-byte alignment, decoded back by its layout; the flags as a
+    JointState's positions."""
     rng = np.random.default_rng(len(frame))
     wrench, covariance = rng.normal(size=6), rng.normal(size=36)
     raw = cdr_messages.wrench_with_covariance_template(frame).fill(
@@ -168,6 +169,9 @@ def test_a_wrench_with_its_covariance_and_the_flags_encode_what_rosbags_decodes(
     assert [twist.linear.x, twist.linear.y, twist.linear.z, twist.angular.x, twist.angular.y,
             twist.angular.z] == wrench.tolist()
     assert np.array_equal(message.twist.covariance, covariance)
+    numbers = cdr_messages.Decoder(cdr_messages.TWIST_WITH_COVARIANCE_STAMPED).decode(raw)[1]   # by its layout
+    assert np.array_equal(numbers["wrench"], wrench) and np.array_equal(numbers["covariance"], covariance)
+    assert (int(numbers["sec"][0]), int(numbers["nanosec"][0])) == (7, 8)
     flags = STORE.deserialize_cdr(joint_state_template(["contact", "collision"], field="position").fill(
         {"sec": 1, "nanosec": 0, "position": [1.0, 0.0]}), JOINT_STATE)
     assert flags.name == ["contact", "collision"] and flags.position.tolist() == [1.0, 0.0]

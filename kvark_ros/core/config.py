@@ -33,7 +33,7 @@ __all__ = ["NODE_NAME", "OBSERVER_NAMES", "WRENCH_FRAMES", "VB_VARIANTS", "MEASU
            "ConfigError", "EstimatorConfig", "FilterSettings", "WrenchSettings", "InputSettings", "ContactSettings",
            "DiagnosticsSettings", "OutputSettings", "TareSettings", "flatten_parameters", "config_from_parameters",
            "parameter_defaults", "default_filter_settings", "load_config", "with_resolved_paths", "default_config_path",
-           "parse_observers", "applies_to", "file_parameters", "resolved_against_files", "resolved_path",
+           "parse_observers", "applies_to", "file_parameters", "path_folders", "with_folders", "resolved_path",
            "launch_parameters", "ANY_NAMESPACE"]
 
 EXAMPLE_ROBOT_DATA_PREFIX = "example-robot-data:"
@@ -211,7 +211,7 @@ def resolved_path(text: str, folder: Path | None) -> str:
     return os.path.normpath(folder / text)
 
 
-def _with_folders(config: EstimatorConfig, folders: Mapping[str, Path | None]) -> EstimatorConfig:
+def with_folders(config: EstimatorConfig, folders: Mapping[str, Path | None]) -> EstimatorConfig:
     """The config with each of ``PATH_KEYS`` resolved against its folder in ``folders``."""
     return replace(config, urdf=resolved_path(config.urdf, folders["robot_model.urdf"]),
                    model_dir=resolved_path(config.model_dir, folders["residual_model.model_dir"]),
@@ -220,7 +220,7 @@ def _with_folders(config: EstimatorConfig, folders: Mapping[str, Path | None]) -
 
 def with_resolved_paths(config: EstimatorConfig, folder: Path) -> EstimatorConfig:
     """Relative file paths of the config made absolute against ``folder``, the config file's folder."""
-    return _with_folders(config, dict.fromkeys(PATH_KEYS, folder))
+    return with_folders(config, dict.fromkeys(PATH_KEYS, folder))
 
 
 def launch_parameters(path: str | os.PathLike) -> dict[str, Any]:
@@ -235,11 +235,12 @@ def launch_parameters(path: str | os.PathLike) -> dict[str, Any]:
     return parameters
 
 
-def resolved_against_files(config: EstimatorConfig, files: Sequence[str | os.PathLike], node: str,
-                           fallback: Path | None) -> EstimatorConfig:
-    """Relative file paths of a node's config made absolute as ``kvark`` makes them: each against the folder of the
-    last of the parameter ``files`` (``--params-file``, in the order given) that sets it for ``node``, the file rcl
-    took the value from; a path no file sets (a launch file's dictionary, a default) against ``fallback``."""
+def path_folders(files: Sequence[str | os.PathLike], node: str, fallback: Path | None) -> dict[str, Path | None]:
+    """For each of ``PATH_KEYS``, the folder a node's relative path resolves against (``with_folders``), as ``kvark``
+    resolves it: that of the last of the parameter ``files`` (``--params-file``, in the order given) that sets it for
+    ``node``, the file rcl took the value from; ``fallback`` where no file sets it (a launch file's dictionary, a
+    default). A node reads it once at its start: its files do not change under it, and parsing them at every
+    run-time parameter change held up the samples."""
     folders: dict[str, Path | None] = dict.fromkeys(PATH_KEYS, fallback)
     for file in files:
         try:
@@ -248,7 +249,7 @@ def resolved_against_files(config: EstimatorConfig, files: Sequence[str | os.Pat
         except (OSError, yaml.YAMLError, ConfigError):
             continue                  # rcl read it, or refused the node's start: nothing of ours from it
         folders.update({key: Path(file).resolve().parent for key in PATH_KEYS if key in given})
-    return _with_folders(config, folders)
+    return folders
 
 
 def default_config_path(robot: str) -> Path:

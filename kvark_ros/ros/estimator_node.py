@@ -91,8 +91,8 @@ class EstimatorNode(Node):
         super().__init__(NODE_NAME, **kwargs)
         self.lock = threading.Lock()                 # held by the input thread per batch, by the others per change
         parameters.declare(self)
-        self._parameter_files = tuple(parameter_files)
-        self._config = config = parameters.read_config(self, self._parameter_files)
+        self._path_folders = parameters.folders_of(self, tuple(parameter_files))
+        self._config = config = parameters.read_config(self, self._path_folders)
         self._torque_source = config.input.torque_source
         effort = EffortCalibration.from_config(config)
         self._effort = None if effort.identity else effort      # τ_m = scale · value + offset, if not the value
@@ -167,7 +167,7 @@ class EstimatorNode(Node):
         names = [p.name for p in changed if p.name in parameters.RUNTIME_KEYS]
         if not names:
             return
-        config = parameters.read_config(self, self._parameter_files)   # read-only keys: refused by the on-set callback
+        config = parameters.read_config(self, self._path_folders)   # read-only keys: refused by the on-set callback
         previous, self._config = self._config, config
         if self._estimator is not None:
             self._estimator.configure(config)

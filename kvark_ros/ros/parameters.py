@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import array
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +20,7 @@ from rclpy.exceptions import ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 
-from kvark_ros.core.config import ConfigError, EstimatorConfig, config_from_parameters, resolved_against_files
+from kvark_ros.core.config import ConfigError, EstimatorConfig, config_from_parameters, path_folders, with_folders
 from kvark_ros.core.config_schema import KEYS, KEYS_BY_NAME, Key
 from kvark_ros.core.estimation.estimator import payload_problem
 
@@ -103,12 +103,17 @@ def parameter_files(arguments: Sequence[str]) -> list[Path]:
     return files
 
 
-def read_config(node: Node, files: Sequence[Path] = ()) -> EstimatorConfig:
-    """The validated config of the node's parameters, relative paths resolved as ``kvark`` resolves them: against
+def folders_of(node: Node, files: Sequence[Path] = ()) -> dict[str, Path | None]:
+    """Where the node's relative paths resolve, as ``kvark`` resolves them (``core.config.path_folders``): against
     the folder of the parameter file (of ``files``) that set them, else against ``config_folder()`` (parameters
-    without a file: a launch file's dictionary, which resolved its own, or the defaults)."""
-    config = config_from_parameters(values(node), f"parameters of {node.get_fully_qualified_name()}")
-    return resolved_against_files(config, files, node.get_fully_qualified_name(), config_folder())
+    without a file: a launch file's dictionary, which resolved its own, or the defaults). Read once, at start."""
+    return path_folders(files, node.get_fully_qualified_name(), config_folder())
+
+
+def read_config(node: Node, folders: Mapping[str, Path | None]) -> EstimatorConfig:
+    """The validated config of the node's parameters, relative paths resolved against ``folders`` (``folders_of``)."""
+    return with_folders(config_from_parameters(values(node), f"parameters of {node.get_fully_qualified_name()}"),
+                        folders)
 
 
 def check_update(node: Node, parameters: list[Parameter]) -> SetParametersResult:

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from kvark_ros.core.config import (ANY_NAMESPACE, ConfigError, applies_to, config_from_parameters, flatten_parameters,
-                                   load_config, resolved_against_files)
+                                   load_config, path_folders, with_folders)
 from kvark_ros.core.estimation.inputs import EffortCalibration, EstimatorInputs
 from kvark_ros.core.estimation.payload import Payload
 
@@ -83,12 +83,13 @@ def test_the_node_resolves_each_path_against_the_parameter_file_that_set_it(tmp_
     config = config_from_parameters(panda_parameters(robot_model__urdf="arm.urdf", residual_model__model_dir="model",
                                                      model_augmentation="augmentation.yaml"))
     fallback = tmp_path / "share"
-    resolved = resolved_against_files(config, [first, second, other], "/lbr/kvark_estimator", fallback)
+    folders = path_folders([first, second, other], "/lbr/kvark_estimator", fallback)
+    resolved = with_folders(config, folders)
     assert resolved.urdf == str(tmp_path / "robot" / "arm.urdf")
     assert resolved.model_dir == str(tmp_path / "site" / "model")
     assert resolved.model_augmentation == str(fallback / "augmentation.yaml")
     kept = config_from_parameters(panda_parameters(robot_model__urdf="robot_description"))
-    assert resolved_against_files(kept, [first], "/lbr/kvark_estimator", fallback).urdf == "robot_description"
+    assert with_folders(kept, path_folders([first], "/lbr/kvark_estimator", fallback)).urdf == "robot_description"
 
 
 @pytest.mark.parametrize("scale, offset", [([2.0], [0.0]), ([1.0] * 7, [0.5] * 7), ([10.0, 10.7, 8.5, 9.0, 9.5, 10.1,

@@ -62,6 +62,11 @@ class Fitter:
             self._cache[key] = (term.design(self.train), term.design(self.held))
         return self._cache[key]
 
+    def stacked(self, terms: Sequence[Term], part: int = 0) -> np.ndarray:
+        """The regressors of ``terms`` and then the ``nuisance`` terms side by side, in θ's order: (T, n, p) of the
+        training (``part`` 0) or held-out (1) samples."""
+        return np.concatenate([self.design(term)[part] for term in [*terms, *self.nuisance]], axis=2)
+
     def _normal_blocks(self, one: Term, other: Term) -> np.ndarray:
         """Weighted Gram block Aᵢᵀ W² Aⱼ of two terms' training regressors, cached (hundreds of fits reuse it)."""
         key = ("gram", self._key(one), self._key(other))
@@ -87,7 +92,7 @@ class Fitter:
         diagonal) = RᵀR and c = AᵀW²b, ‖W(Aθ − b)‖² + ‖θ/σ‖² = ‖Rθ − R⁻ᵀc‖² + const, so BVLS solves a
         p × p problem built from cached blocks instead of a QR of the stacked T·n × p design.
         """
-        terms = [*terms, *self.nuisance]
+        chosen, terms = terms, [*terms, *self.nuisance]
         if not terms:
             return np.zeros(0), None, self.train.gap.copy(), self.held.gap.copy()
         gram = np.block([[self._normal_blocks(one, other) for other in terms] for one in terms])
@@ -120,9 +125,8 @@ class Fitter:
                                 for term in terms)
             raise np.linalg.LinAlgError(f"the least-squares fit of {effects}: {exc}") from exc
         theta = sol.x / scale
-        a_tr, a_he = (np.concatenate([self.design(term)[i] for term in terms], axis=2) for i in (0, 1))
-        r_tr = self.train.gap - a_tr @ theta
-        r_he = self.held.gap - a_he @ theta
+        r_tr = self.train.gap - self.stacked(chosen, 0) @ theta
+        r_he = self.held.gap - self.stacked(chosen, 1) @ theta
         return theta, np.linalg.pinv(gram_scaled) / np.outer(scale, scale), r_tr, r_he
 
     def covariance(self, terms: Sequence[Term], inverse: np.ndarray | None, r_tr: np.ndarray) -> np.ndarray | None:
@@ -132,8 +136,7 @@ class Fitter:
         95 % intervals of a payload's mass that held the true mass on 11 of 30 simulated robots."""
         if inverse is None:
             return None
-        design = np.concatenate([self.design(term)[0] for term in [*terms, *self.nuisance]], axis=2)
-        scores = np.einsum("tjp,j,tj->tp", design, np.square(self.w), r_tr, optimize=True)
+        scores = np.einsum("tjp,j,tj->tp", self.stacked(terms), np.square(self.w), r_tr, optimize=True)
         return inverse @ long_run_covariance(scores) @ inverse
 
     def bic(self, r_tr: np.ndarray, k: int) -> float:

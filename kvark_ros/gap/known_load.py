@@ -131,8 +131,9 @@ def gain_record(effects: Sequence[Mapping[str, Any]], n: int, bound: float, load
                 measurement: str, centre: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """``drive_gains`` of diagnosis.json and augmentation.yaml: the gain per joint (1 where none is named), its 95 %
     half-width (the prior's ``bound`` where the data did not narrow it) and whether it was identified. Without a known
-    load every gain is unidentified, named or not: free motion cannot tell it from the links' inertia. ``mass_share``: the largest
-    share of a payload's mass the gains may move it by (``gain_width`` gives the payload's own figure)."""
+    load every gain is unidentified, named or not: free motion cannot tell it from the links' inertia.
+    ``mass_share``: the largest share of a payload's mass the gains may move it by (``gain_width`` gives the payload's
+    own figure)."""
     gain, half = np.ones(n), np.full(n, bound)
     identified = np.zeros(n, dtype=bool)
     for effect in effects:
@@ -173,8 +174,7 @@ def gain_width(fitter: Fitter, terms: Sequence[Term], inverse: np.ndarray | None
     if inverse is None:
         return float("nan")
     pos = sum(term.size for term in terms[:index])
-    design = np.concatenate([fitter.design(term)[0] for term in [*terms, *fitter.nuisance]], axis=2)
     own = fitter.design(terms[index])[0] @ theta[pos:pos + terms[index].size]           # (T, n) N·m
-    moments = np.einsum("tjp,j,tj->pj", design, np.square(fitter.w), own, optimize=True)   # (p, n)
+    moments = np.einsum("tjp,j,tj->pj", fitter.stacked(terms), np.square(fitter.w), own, optimize=True)   # (p, n)
     sensitivity = (inverse @ moments)[pos]                                                  # ∂m̂/∂δ_j, kg
     return float(np.sum(np.abs(sensitivity) * np.asarray(half, dtype=float)))

@@ -36,6 +36,14 @@ CHECK_RATE_HZ = 500.0    # grid on which the returned trajectory is made feasibl
 MAX_OBJECTIVE_SAMPLES = 1000   # cap on the objective grid, so long trajectories cost the same
 
 
+def urdf_limits(model: Any, position_scale: float, velocity_scale: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(lower, upper, velocity) (n,): a pinocchio ``model``'s position limits shrunk about their midpoints by
+    ``position_scale`` (rad) and its velocity limits × ``velocity_scale`` (rad/s): the box every excitation keeps in."""
+    lower, upper = np.array(model.lowerPositionLimit), np.array(model.upperPositionLimit)
+    mid, half = 0.5 * (upper + lower), 0.5 * (upper - lower) * position_scale
+    return mid - half, mid + half, np.array(model.velocityLimit) * velocity_scale
+
+
 @dataclass(frozen=True, eq=False)
 class ExcitationLimits:
     """Box the excitation must stay in: q̄ ± half_range (rad), |q̇| ≤ velocity (rad/s),
@@ -52,16 +60,12 @@ class ExcitationLimits:
         """URDF position and velocity limits (via pinocchio) and the setup's acceleration limits,
         each scaled by its safety factor; the position range shrinks about its midpoint and,
         if the setup has an excitation window, is intersected with home ± window."""
-        model = setup.nominal_model().model
-        lower, upper = np.array(model.lowerPositionLimit), np.array(model.upperPositionLimit)
-        mid, half = 0.5 * (upper + lower), 0.5 * (upper - lower) * position_scale
-        lower, upper = mid - half, mid + half
+        lower, upper, velocity = urdf_limits(setup.nominal_model().model, position_scale, velocity_scale)
         if setup.excitation_half_range is not None:
             window = np.array(setup.excitation_half_range) * position_scale
             lower = np.maximum(lower, setup.home_array() - window)
             upper = np.minimum(upper, setup.home_array() + window)
-        return cls(centre=0.5 * (upper + lower), half_range=0.5 * (upper - lower),
-                   velocity=np.array(model.velocityLimit) * velocity_scale,
+        return cls(centre=0.5 * (upper + lower), half_range=0.5 * (upper - lower), velocity=velocity,
                    acceleration=np.array(setup.acceleration_limit) * acceleration_scale)
 
     def violation(self, q: FloatArray, qd: FloatArray, qdd: FloatArray) -> FloatArray:

@@ -31,7 +31,7 @@ from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.core.files import staged_directory
 from kvark_ros.io.cdr_messages import JOINT_TRAJECTORY, joint_trajectory_message
 from kvark_ros.io.writer import BagWriter, Messages
-from kvark_ros.sim.excitation import CHECK_RATE_HZ, ExcitationLimits, optimise_excitation
+from kvark_ros.sim.excitation import CHECK_RATE_HZ, ExcitationLimits, optimise_excitation, urdf_limits
 
 if TYPE_CHECKING:
     from kvark_ros.cli import SubParsers
@@ -56,19 +56,16 @@ def limits_for(config: EstimatorConfig, centre: np.ndarray, half_range: np.ndarr
     """The box the trajectory keeps in (module docstring): ``centre`` ± ``half_range`` cut to the URDF's position
     limits shrunk about their middle by ``position_scale``; ``velocity_scale`` × the URDF's velocity limits;
     ``acceleration`` (n,) rad/s². ConfigError for a centre outside the shrunk limits, naming the joint."""
-    model = RobotModel.from_config(config).model
-    lower, upper = np.array(model.lowerPositionLimit), np.array(model.upperPositionLimit)
-    middle, reach = 0.5 * (upper + lower), 0.5 * (upper - lower) * position_scale
-    low, high = np.maximum(centre - half_range, middle - reach), np.minimum(centre + half_range, middle + reach)
-    outside = np.flatnonzero((centre <= middle - reach) | (centre >= middle + reach))
+    lower, upper, velocity = urdf_limits(RobotModel.from_config(config).model, position_scale, velocity_scale)
+    low, high = np.maximum(centre - half_range, lower), np.minimum(centre + half_range, upper)
+    outside = np.flatnonzero((centre <= lower) | (centre >= upper))
     if len(outside):
         j = outside[0]
         raise ConfigError(f"--centre: {config.joint_names[j]} = {centre[j]:g} rad is not within its URDF limits × "
-                          f"--position-scale [{middle[j] - reach[j]:.3f}, {middle[j] + reach[j]:.3f}] rad")
+                          f"--position-scale [{lower[j]:.3f}, {upper[j]:.3f}] rad")
     # The window about the centre, symmetric: the nearer of the two cut edges.
     window = np.minimum(centre - low, high - centre)
-    return ExcitationLimits(centre=centre.copy(), half_range=window, velocity=np.array(model.velocityLimit)
-                            * velocity_scale, acceleration=acceleration)
+    return ExcitationLimits(centre=centre.copy(), half_range=window, velocity=velocity, acceleration=acceleration)
 
 
 def _trajectory_yaml(names: list[str], times: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> str:

@@ -36,7 +36,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
-from kvark_ros.core.config import NODE_NAME, EstimatorConfig, file_parameters, load_config
+from kvark_ros.core.config import NODE_NAME, EstimatorConfig, launch_parameters, load_config
 from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.core.estimation.pairing import stamp_seconds
@@ -103,13 +103,11 @@ class Recorder(Node):
                    for array in self.diagnostics[-1:] for status in array.status)
 
 
-def node_parameters_file(config_path: str | os.PathLike, config: EstimatorConfig, model_dir: str,
-                         folder: Path) -> Path:
-    """The config file's parameters (every key of it that applies to the node: ``file_parameters``) with absolute
-    paths and ``model_dir``, as a node parameter file in ``folder``."""
-    flat = file_parameters(yaml.safe_load(Path(config_path).read_text()), str(config_path))
-    flat.update({"residual_model.model_dir": str(Path(model_dir).resolve()), "robot_model.urdf": config.urdf,
-                 "model_augmentation": config.model_augmentation})
+def node_parameters_file(config_path: str | os.PathLike, model_dir: str, folder: Path) -> Path:
+    """The config file's parameters as the launch file passes them (``launch_parameters``: every key of it that
+    applies to the node, relative paths made absolute) with ``model_dir``, as a node parameter file in ``folder``."""
+    flat = launch_parameters(config_path)
+    flat["residual_model.model_dir"] = str(Path(model_dir).resolve())
     parameters: dict = {}
     for name, value in flat.items():             # dotted names nested again, as the YAML groups them
         *groups, key = name.split(".")
@@ -135,7 +133,7 @@ def check_node(config_path: str, bag: str, model_dir: str | None = None, rate: f
     counter = None if callgrind is None else Callgrind(Path(callgrind).resolve())
     with tempfile.TemporaryDirectory(prefix="kvark_node_check_") as scratch:
         ros_env = local_domain(domain, Path(scratch) / "log")
-        parameters = node_parameters_file(config_path, config, model_dir, Path(scratch))
+        parameters = node_parameters_file(config_path, model_dir, Path(scratch))
         node_log = open(Path(scratch) / "node.log", "w+")
         process = start_node(parameters, {**os.environ, **ros_env}, node_log, counter.prefix if counter else ())
         figures: dict = {}

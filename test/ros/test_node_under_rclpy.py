@@ -77,8 +77,7 @@ def _config_with(tmp_path: Path, **changes) -> Path:
 def _parameters_file(tmp_path: Path, **changes) -> Path:
     """The node's parameter file for ``_config_with(tmp_path, **changes)``, as ``ros2 run --params-file`` takes it."""
     config = _config_with(tmp_path, **changes)
-    loaded = load_config(config)
-    return node_check.node_parameters_file(config, loaded, loaded.model_dir, tmp_path)
+    return node_check.node_parameters_file(config, load_config(config).model_dir, tmp_path)
 
 @pytest.mark.realtime        # a node process keeping up with real time: never beside another test process
 @pytest.mark.parametrize("rate, load_cores", [(1.0, 0), (2.0, 1)], ids=["500Hz", "1kHz-other-core-busy"])

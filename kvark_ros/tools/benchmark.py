@@ -201,7 +201,8 @@ def add_parser(subparsers: SubParsers) -> None:
                            "in turn), augmented model: τ_ext RMSE during and after the pushes, contact delay "
                            "(default 0: off; e.g. 40)")
     real.add_argument("--no-baselines", action="store_true", help="skip the learned baselines (faster)")
-    real.add_argument("--no-plots", action="store_true", help="skip the figures of the held-out part (report.md only)")
+    real.add_argument("--no-plots", action="store_true",
+                      help="skip the figures, the held-out part's and the diagnosis' (report.md and the JSON only)")
     parser.set_defaults(run=run)
 
 

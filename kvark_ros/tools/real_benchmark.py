@@ -248,7 +248,8 @@ def _run_real(args: argparse.Namespace, out: Path) -> int:
         + ("" if base is None else f" against the calibration {calibration}") + ", training on the augmented model")
     calibrated = robot if base is None else RobotModel.from_config(config, base)
     augmented, results["augmentation"] = train_on_diagnosis(config, calibrated, [train], out,
-                                                            baselines=not args.no_baselines, log=log)
+                                                            baselines=not args.no_baselines, log=log,
+                                                            plots=not args.no_plots)
     log(f"[benchmark] step 4/{steps}: {len(observers)} observers on the held-out part, augmented model")
     results["augmented"] = evaluate(config, augmented, held, observers, log)
     if pushes is not None:

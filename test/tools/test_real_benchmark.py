@@ -72,6 +72,7 @@ def test_real_benchmark_reports_false_torque_coverage_and_contacts_nominal_and_a
                 <= 0.8 * results["nominal"][name]["joint_rmse_mean"]), (name, results)
     assert (out / "report.md").read_text().count("| kvark |") == 1
     assert (out / "model" / "model.yaml").is_file() and (out / "diagnosis" / "augmentation.yaml").is_file()
+    assert not list(out.rglob("*.png")), "--no-plots draws no figure, the diagnosis' neither"
     # The diagnosis is bounded by the priors of the config's torque measurement, as `kvark diagnose` bounds it:
     # the Panda's link-side sensors (±2 % gain), not the default motor current's ±10 %.
     priors = json.loads((out / "diagnosis" / "diagnosis.json").read_text())["priors"]

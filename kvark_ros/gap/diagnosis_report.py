@@ -14,6 +14,7 @@ import yaml
 from kvark_ros.core.files import write_text_atomically
 from kvark_ros.core.estimation.robot_model import RobotModel
 from kvark_ros.gap.effects import Signals, Term
+from kvark_ros.gap.known_load import gain_cells
 
 
 @dataclass
@@ -117,8 +118,7 @@ def drive_gains_section(gains: dict, joint_names: Sequence[str]) -> list[str]:
             f"payload's torque one to one, so a payload's mass read with this model may be off by up to "
             f"±{gains['mass_share']:.0%} (its interval carries it). To measure the gains, record the same kind of "
             "motion with a known mass at the flange and pass `--known-load MASS BAG` (docs/walkthrough.md)."]
-    cells = ", ".join(f"{name} {g:.3f} ± {h:.3f}{'' if ok else ' (not identified: the prior)'}"
-                      for name, g, h, ok in zip(joint_names, gains["gain"], gains["ci95"], gains["identified"]))
+    cells = ", ".join(gain_cells(gains, joint_names))
     com = load.get("com")
     where = ("" if com is None else
              f"; its centre of mass {'as given' if load.get('com_given') else 'as the data read it'}: "

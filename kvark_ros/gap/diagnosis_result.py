@@ -20,7 +20,7 @@ from kvark_ros.gap.admissible import beyond_priors, prior_fields
 from kvark_ros.gap.diagnosis_report import Diagnosis
 from kvark_ros.gap.effects import Priors, Term, physical_parameters, variants
 from kvark_ros.gap.fitting import Fitter
-from kvark_ros.gap.known_load import KnownLoad, base_gains, gain_record, gain_width, load_centre
+from kvark_ros.gap.known_load import KnownLoad, base_gains, gain_cells, gain_record, gain_width, load_centre
 from kvark_ros.gap.plausibility import (RAW_QDD_WINDOW, beyond_prior_warning, flange_change, flange_mass_regrouping,
                                         look_alikes, plausibility_warnings, raw_gap)
 from kvark_ros.gap.priors import UNITS
@@ -117,8 +117,8 @@ def state(inputs: DiagnosisInputs, fitter: Fitter, terms: list[Term], fit: Fit, 
         f"{RAW_QDD_WINDOW * 1e3:.0f} ms filter {result['gap_raw']['before_mean']:.4f} → "
         f"{result['gap_raw']['after_mean']:.4f}")
     if inputs.load is not None:
-        log(f"[diagnose] drive gains against the known load of {inputs.load.mass:g} kg: " + ", ".join(
-            f"{name} {g:.3f} ± {h:.3f}" for name, g, h in zip(names, gains["gain"], gains["ci95"])))
+        log(f"[diagnose] drive gains against the known load of {inputs.load.mass:g} kg: "
+            + ", ".join(gain_cells(gains, names)))
     for warning in warnings:
         log(f"[diagnose] warning: {warning}")
     return Diagnosis(result, terms, thetas, fitter.held, r_he, sample_interval)

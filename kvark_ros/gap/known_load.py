@@ -127,6 +127,13 @@ def load_centre(load: KnownLoad, theta: np.ndarray, cov: np.ndarray | None) -> d
     return {"com": (theta[:3] / load.mass).tolist(), "com_ci95": (1.96 * sd / load.mass).tolist(), "com_given": False}
 
 
+def gain_cells(record: Mapping[str, Any], joint_names: Sequence[str]) -> list[str]:
+    """Each joint's drive gain of a ``gain_record`` as the log and the reports write it: ``name g ± h`` (95 %), or
+    ``name not identified (±h prior)`` where the data did not narrow it below the prior."""
+    return [f"{name} {g:.3f} ± {h:.3f}" if ok else f"{name} not identified (±{h:.2f} prior)"
+            for name, g, h, ok in zip(joint_names, record["gain"], record["ci95"], record["identified"])]
+
+
 def gain_record(effects: Sequence[Mapping[str, Any]], n: int, bound: float, load: KnownLoad | None,
                 measurement: str, centre: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """``drive_gains`` of diagnosis.json and augmentation.yaml: the gain per joint (1 where none is named), its 95 %

@@ -127,8 +127,8 @@ def gains_sentence(record: dict[str, Any] | None, joint_names: Sequence[str]) ->
     if record.get("calibrated_with") is None:
         return (f"unidentified (τ_m is {record['torque_measurement']}; free motion cannot tell them from the links' "
                 f"inertia: a payload's mass may be off by up to ±{record['mass_share']:.0%})")
-    found = ", ".join(f"{name} {g:.3f} ± {h:.3f}" if ok else f"{name} not identified (±{h:.2f} prior)"
-                      for name, g, h, ok in zip(joint_names, record["gain"], record["ci95"], record["identified"]))
+    from kvark_ros.gap.known_load import gain_cells      # the diagnosis' modules only where a report needs them
+    found = ", ".join(gain_cells(record, joint_names))
     return f"measured with a known load of {record['calibrated_with']['mass_kg']:g} kg: {found} (95 %)"
 
 

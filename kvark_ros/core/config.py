@@ -19,8 +19,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any, Mapping
 
-import yaml
-
 from kvark_ros.core.config_schema import (KEYS, KEYS_BY_NAME, MEASUREMENTS, NODE_NAME, OBSERVER_NAMES, REMOVED_KEYS,
                                           RENAMED_KEYS, VB_VARIANTS, WRENCH_FRAMES, Key, vb_variant_problem)
 from kvark_ros.core.files import read_yaml
@@ -244,9 +242,8 @@ def path_folders(files: Sequence[str | os.PathLike], node: str, fallback: Path |
     folders: dict[str, Path | None] = dict.fromkeys(PATH_KEYS, fallback)
     for file in files:
         try:
-            document = yaml.safe_load(Path(file).read_text())
-            given = file_parameters(document, str(file), node)
-        except (OSError, yaml.YAMLError, ConfigError):
+            given = file_parameters(_read_document(file), str(file), node)
+        except ConfigError:
             continue                  # rcl read it, or refused the node's start: nothing of ours from it
         folders.update({key: Path(file).resolve().parent for key in PATH_KEYS if key in given})
     return folders

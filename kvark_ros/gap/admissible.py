@@ -150,8 +150,8 @@ def consistent(fitter: Fitter, terms: Sequence[Term], *fit: np.ndarray) -> tuple
     consistent: the prior of each offending body is tightened toward the URDF (σ set to ``first_prior`` where it
     was ∞, else halved; at most ``MAX_PRIOR_HALVINGS`` times), a payload's second moments toward those of a solid
     sphere of ``LOAD_RADIUS`` at its fitted mass and centre (``point_mass_moments``: shrinking them toward zero about
-    the flange origin would put a massive payload's inertia about its own centre below zero). Returns the last fit (check it with
-    ``bad_bodies``).
+    the flange origin would put a massive payload's inertia about its own centre below zero). Returns the last fit
+    (check it with ``bad_bodies``).
 
     The data identify only some combinations of a link's parameters (a base link turning about z shows only
     its I_zz); the others follow the prior, and a prior loose enough for the identified ones can let them

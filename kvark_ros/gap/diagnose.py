@@ -167,8 +167,9 @@ def train_on_diagnosis(config: EstimatorConfig, robot: RobotModel, segments: Seq
     ``--against``) within the priors of ``config``'s torque measurement, as ``kvark diagnose`` does (with
     ``known_load``: ``--known-load``, on the nominal model); write the outputs to ``out/diagnosis`` (its figures
     with ``plots``), train on the model augmented with what was named (on ``segments`` alone: the known load is not
-    the robot's) and save it to ``out/model_augmented``. Returns the trained model and a summary: the effects, the mean held-out gap
-    before/after (N·m), the effects against their priors (``plausibility.prior_summary``) and the drive gains."""
+    the robot's) and save it to ``out/model_augmented``. Returns the trained model and a summary: the effects, the
+    mean held-out gap before/after (N·m), the effects against their priors (``plausibility.prior_summary``) and the
+    drive gains."""
     diagnosis = diagnose(robot, segments, log=log, priors=Priors(torque_measurement=config.torque_measurement),
                          known_load=known_load)
     for path in write_outputs(diagnosis, robot, out / "diagnosis", config.robot, plots):

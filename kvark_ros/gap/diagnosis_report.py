@@ -133,7 +133,8 @@ def drive_gains_section(gains: dict, joint_names: Sequence[str]) -> list[str]:
 
 
 def _priors_table(priors: dict) -> list[str]:
-    """The priors in force (``diagnosis_result.priors_in_force``): one row per effect, its bound per joint and its source."""
+    """The priors in force (``diagnosis_result.priors_in_force``): one row per effect, its bound per joint and its
+    source."""
     lines = [f"## Priors ({priors['torque_measurement']})", "",
              "Every effect is bounded by a plausible range from the URDF and how τ_m is measured (docs/method.md "
              "§8.6); an effect at its bound is dropped, and a warning says when the data want it beyond. Bounds per "

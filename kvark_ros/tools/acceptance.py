@@ -1,10 +1,9 @@
 """The acceptance limits the benchmark reports check, in one place, and the population's lines
 (``tools.population_benchmark``): the simulated plants' limits (``tools.benchmark``), and the population's lines as
-restated by the drive-gain
-calibration's owner: read on the diagnosed model (the pipeline's result), the nominal model's figures beside them for
-reference; K-VARK's coverage95 at least min(kf's, 0.95) and its interval score no worse than kf's in every cell; the
-flange mass judged after the known-load calibration on motor-current arms, within 10 % on every robot with the truth
-inside its 95 % interval on all but one in six.
+restated by the drive-gain calibration's owner: read on the diagnosed model (the pipeline's result), the nominal
+model's figures beside them for reference; K-VARK's coverage95 at least min(kf's, 0.95) and its interval score no
+worse than kf's in every cell; the flange mass judged after the known-load calibration on motor-current arms, within
+10 % on every robot with the truth inside its 95 % interval on all but one in six.
 
 ``rows`` are robot × scene cells (``population_benchmark.cells``): each observer's figures by name, ``<observer>_aug``
 on the diagnosed model; ``robots`` the population's per-robot results.

@@ -86,15 +86,31 @@ class Fitter:
 
     def fit(self, terms: Sequence[Term]) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
         """(θ, G⁻¹, train residual, held-out residual); G⁻¹ (p, p), the inverse of the weighted normal matrix with
-        the priors, is the bread of ``covariance``. θ and G⁻¹ end with the ``nuisance`` terms' parameters.
+        the priors, is the bread of ``covariance``. θ and G⁻¹ end with the ``nuisance`` terms' parameters."""
+        if not [*terms, *self.nuisance]:
+            return np.zeros(0), None, self.train.gap.copy(), self.held.gap.copy()
+        theta, gram_scaled, scale = self._solve(terms)
+        r_tr = self.train.gap - self.stacked(terms, 0) @ theta
+        return theta, np.linalg.pinv(gram_scaled) / np.outer(scale, scale), r_tr, self._held_residual(terms, theta)
+
+    def held_out(self, terms: Sequence[Term]) -> np.ndarray:
+        """The held-out residual (T_h, n) N·m of ``fit(terms)``, the same bits, without the train residual and G⁻¹
+        that the screens of ``gap.selection`` do not read (they were most of a screening fit's time)."""
+        if not [*terms, *self.nuisance]:
+            return self.held.gap.copy()
+        return self._held_residual(terms, self._solve(terms)[0])
+
+    def _held_residual(self, terms: Sequence[Term], theta: np.ndarray) -> np.ndarray:
+        return self.held.gap - self.stacked(terms, 1) @ theta
+
+    def _solve(self, chosen: Sequence[Term]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(θ, scaled normal matrix with the priors, column scale) of the terms and the nuisance terms.
 
         Bounded weighted least squares on the normal equations: with G = AᵀW²A (+ the priors' 1/σ² on the
         diagonal) = RᵀR and c = AᵀW²b, ‖W(Aθ − b)‖² + ‖θ/σ‖² = ‖Rθ − R⁻ᵀc‖² + const, so BVLS solves a
         p × p problem built from cached blocks instead of a QR of the stacked T·n × p design.
         """
-        chosen, terms = terms, [*terms, *self.nuisance]
-        if not terms:
-            return np.zeros(0), None, self.train.gap.copy(), self.held.gap.copy()
+        terms = [*chosen, *self.nuisance]
         gram = np.block([[self._normal_blocks(one, other) for other in terms] for one in terms])
         moment = np.concatenate([self._moment(term) for term in terms])
         lo = np.concatenate([term.bounds(self.priors)[0] for term in terms])
@@ -124,10 +140,7 @@ class Fitter:
             effects = ", ".join(f"{term.name} on joint(s) {', '.join(str(j + 1) for j in term.joints)}"
                                 for term in terms)
             raise np.linalg.LinAlgError(f"the least-squares fit of {effects}: {exc}") from exc
-        theta = sol.x / scale
-        r_tr = self.train.gap - self.stacked(chosen, 0) @ theta
-        r_he = self.held.gap - self.stacked(chosen, 1) @ theta
-        return theta, np.linalg.pinv(gram_scaled) / np.outer(scale, scale), r_tr, r_he
+        return sol.x / scale, gram_scaled, scale
 
     def covariance(self, terms: Sequence[Term], inverse: np.ndarray | None, r_tr: np.ndarray) -> np.ndarray | None:
         """Cov θ (p, p) of a fit (``inverse``: its G⁻¹, ``r_tr``: its train residual (T, n) N·m): the sandwich

@@ -42,7 +42,7 @@ def _screen(name: str, variant: dict, fitter: Fitter, terms: Sequence[Term], r_h
     chosen = []
     held_rms = rmse(r_he)
     for j in range(n):
-        after = rmse(fitter.fit([*terms, Term(name, (j,), variant)])[3])
+        after = rmse(fitter.held_out([*terms, Term(name, (j,), variant)]))
         gain = held_rms[j] - after[j]
         if gain >= MIN_REDUCTION * held_rms[j] and gain >= MIN_ABS_REDUCTION:
             chosen.append(j)
@@ -65,14 +65,14 @@ def _screen_coupled(name: str, variant: dict, fitter: Fitter, terms: Sequence[Te
     chosen = [j for j in range(n) if size[j] > 1e-9 * max(float(size.max()), 1e-300)]
     if not chosen:
         return None
-    after = rmse(fitter.fit([*terms, Term(name, tuple(chosen), variant)])[3])
+    after = rmse(fitter.held_out([*terms, Term(name, tuple(chosen), variant)]))
     while chosen:
         trials = []
         for j in chosen:
             rest = [i for i in chosen if i != j]
-            without = rmse(fitter.fit([*terms, Term(name, tuple(rest), variant)])[3]) if rest else None
+            without = rmse(fitter.held_out([*terms, Term(name, tuple(rest), variant)])) if rest else None
             if without is None:
-                without = rmse(fitter.fit(list(terms))[3])
+                without = rmse(fitter.held_out(list(terms)))
             if len(affected(without, after)) == 0:
                 trials.append((float(np.mean(np.square(without * fitter.w))), j, without))
         if not trials:
@@ -136,7 +136,7 @@ def contributions(fitter: Fitter, terms: list[Term], r_he: np.ndarray) -> list[d
     after = rmse(r_he)
     history = []
     for i, term in enumerate(terms):
-        before = rmse(fitter.fit(terms[:i] + terms[i + 1:])[3])
+        before = rmse(fitter.held_out(terms[:i] + terms[i + 1:]))
         joints = affected(before, after)
         red = (1.0 - np.sqrt(np.mean(np.square(after[joints]))) / np.sqrt(np.mean(np.square(before[joints])))
                if len(joints) else 0.0)
@@ -229,7 +229,7 @@ def select(fitter: Fitter, effects: Sequence[str], names: Sequence[str], log: Ca
     (``payload_first``)."""
     log(f"[diagnose] fitting each of {len(effects)} effects alone (shared by the {STARTS} starts) ...")
     best, best_priors = None, None
-    first_round = scored_candidates(fitter, list(fitter.forced), fitter.fit(list(fitter.forced))[3], effects,
+    first_round = scored_candidates(fitter, list(fitter.forced), fitter.held_out(list(fitter.forced)), effects,
                                     len(names))    # shared by every start
     initial_priors = dict(fitter.prior_scale)
     for start in range(STARTS):

@@ -162,21 +162,22 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
 
 def train_on_diagnosis(config: EstimatorConfig, robot: RobotModel, segments: Sequence[EstimatorInputs], out: Path,
                        baselines: bool, seed: int = 0, log: Callable[[str], None] = print,
-                       known_load: KnownLoad | None = None, plots: bool = True) -> tuple[TrainedModel, dict]:
+                       known_load: KnownLoad | None = None, plots: bool = True,
+                       residual_inputs: str = "auto") -> tuple[TrainedModel, dict]:
     """Diagnose ``segments`` on ``robot`` (the nominal model, or a calibrated one: then what changed since, as
     ``--against``) within the priors of ``config``'s torque measurement, as ``kvark diagnose`` does (with
     ``known_load``: ``--known-load``, on the nominal model); write the outputs to ``out/diagnosis`` (its figures
     with ``plots``), train on the model augmented with what was named (on ``segments`` alone: the known load is not
-    the robot's) and save it to ``out/model_augmented``. Returns the trained model and a summary: the effects, the
-    mean held-out gap before/after (N·m), the effects against their priors (``plausibility.prior_summary``) and the
-    drive gains."""
+    the robot's; the KMP's inputs ``residual_inputs``, as ``train_model``'s) and save it to ``out/model_augmented``.
+    Returns the trained model and a summary: the effects, the mean held-out gap before/after (N·m), the effects
+    against their priors (``plausibility.prior_summary``) and the drive gains."""
     diagnosis = diagnose(robot, segments, log=log, priors=Priors(torque_measurement=config.torque_measurement),
                          known_load=known_load)
     for path in write_outputs(diagnosis, robot, out / "diagnosis", config.robot, plots):
         log(f"[diagnose] wrote {path}")
     augmentation = load_augmentation(out / "diagnosis" / "augmentation.yaml", config.joint_names)
     trained = train_model(RobotModel.from_config(config, augmentation), config.robot, segments, baselines=baselines,
-                          seed=seed, log=log, settings=config.filter)
+                          seed=seed, log=log, settings=config.filter, residual_inputs=residual_inputs)
     save_model(out / "model_augmented", trained)
     return trained, {"effects": list(augmentation.effect_names),
                      "gap_before": diagnosis.result["gap_before"]["joint_rmse_mean"],

@@ -234,12 +234,13 @@ def _run_real(args: argparse.Namespace, out: Path) -> int:
     steps = 4 if pushes is None else 5
     log(f"[benchmark] step 1/{steps}: training on the nominal model")
     nominal = train_model(robot, config.robot, [train], baselines=not args.no_baselines, log=log,
-                          settings=config.filter)
+                          settings=config.filter, residual_inputs=args.residual_inputs)
     save_model(out / "model", nominal)
     log(f"[benchmark] step 2/{steps}: {len(observers)} observers on the held-out part, nominal model")
     results: dict[str, Any] = {
         "bag": str(args.real), "train_share": args.train_share, "trim_s": [float(v) for v in args.trim],
         "torque_source": inputs.torque_source, "joint_names": list(config.joint_names), "calibration": calibration,
+        "residual_inputs": args.residual_inputs,
         "rate_hz": round(1.0 / float(np.median(np.diff(held.stamp))), 1),
         "samples": {"train": len(train), "held_out": len(held)},
         "nominal": evaluate(config, nominal, held, observers, log)}
@@ -249,7 +250,8 @@ def _run_real(args: argparse.Namespace, out: Path) -> int:
     calibrated = robot if base is None else RobotModel.from_config(config, base)
     augmented, results["augmentation"] = train_on_diagnosis(config, calibrated, [train], out,
                                                             baselines=not args.no_baselines, log=log,
-                                                            plots=not args.no_plots)
+                                                            plots=not args.no_plots,
+                                                            residual_inputs=args.residual_inputs)
     log(f"[benchmark] step 4/{steps}: {len(observers)} observers on the held-out part, augmented model")
     results["augmented"] = evaluate(config, augmented, held, observers, log)
     if pushes is not None:

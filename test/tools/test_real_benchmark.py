@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from kvark_ros.cli import main
+from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.core.estimation.inputs import EstimatorInputs
 from kvark_ros.io import write_run
 from kvark_ros.tools.real_benchmark import split
@@ -40,12 +41,16 @@ def recording(simulated, tmp_path_factory):
 
 def test_real_benchmark_reports_false_torque_coverage_and_contacts_nominal_and_augmented(simulated, recording,
                                                                                             tmp_path, capsys):
-    """The command end to end without its figures (--no-plots: the figures are test_plots_honest.py's)."""
+    """The command end to end without its figures (--no-plots: the figures are test_plots_honest.py's). The KMP takes
+    q̇ alone on every joint: what --residual-inputs auto chooses in both trainings on this recording (the same figures,
+    checked), without the selection's fits of every input kind (about half the test's time)."""
     out = tmp_path / "out"
     code = main(["benchmark", "--real", str(recording), "--out", str(out), "--no-baselines",
-                 "--observers", "kvark,kf,momentum", "--no-plots"])
+                 "--observers", "kvark,kf,momentum", "--no-plots", "--residual-inputs", "qd"])
     assert code == 0
     results = json.loads((out / "results.json").read_text())
+    assert results["residual_inputs"] == "qd"
+    assert [load_model(out / folder).residual.inputs for folder in ("model", "model_augmented")] == [("qd",) * 7] * 2
     assert results["torque_source"] == "joint_states effort (the bag has no effort commands)"
     # 5 s at 500 Hz: 2 500 samples, the first 70 % of the time to train, the rest held out
     assert results["samples"]["train"] == pytest.approx(1750, abs=2)

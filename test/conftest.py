@@ -30,7 +30,7 @@ LONG_MODULES = ("test/gap/test_diagnosis.py", "test/tools/test_train_and_replay.
                 "test/gap/test_diagnosis_workflow.py", "test/core/test_training_fast_paths.py",
                 "test/tools/test_fuzz_corrupt_logs.py", "test/ros/test_node_logic_stand_in.py",
                 "test/tools/test_real_benchmark.py", "test/core/test_kvark_filter.py",
-                "test/ros/test_node_under_rclpy.py",
+                "test/ros/test_node_under_rclpy.py", "test/ros/test_driver_recipes_under_rclpy.py",
                 "test/core/test_compiled_step_matches_reference.py", "test/tools/test_walkthrough.py",
                 "test/tools/test_evaluate_on_dask.py")
 

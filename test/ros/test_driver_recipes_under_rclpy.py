@@ -13,7 +13,9 @@ recipe's parameter file, as ``ros2 run`` starts it, and every estimate equal to 
 The three nodes run at once on one ROS domain of their own (loopback only), each started from another folder than
 its file's, so the paths resolve against the file; the UR node in the namespace ``ur`` with its input remapped to
 ``/joint_states`` (two nodes called ``kvark_estimator`` in one namespace would share their outputs' names), as for
-two arms on one machine. Their outputs are recorded as CDR bytes and decoded afterwards.
+two arms on one machine. Their outputs are recorded as CDR bytes and decoded afterwards. The module runs beside the
+other tests (not ``realtime``): what it checks is what arrives, not how fast, and the queue depth and the waits
+below keep every sample on a machine whose cores are busy (both cores running ``yes``: 5 of 5 runs passed).
 On the Franka node the stamped outputs are paired by header stamp as message_filters' ExactTime policy pairs them
 (ApproximateTime pairs the same sets when stamps are equal): message_filters itself has no wheel here.
 """
@@ -256,7 +258,6 @@ def _stamp(message) -> float:
     return message.header.stamp.sec + message.header.stamp.nanosec * 1e-9
 
 
-@pytest.mark.realtime
 @pytest.mark.parametrize("driver", ["franka", "ur", "lbr"])
 def test_each_drivers_topics_into_the_node_from_its_recipe_equal_replay(played, driver):
     """Every estimate replay gives on the driver's bag arrives, nothing else, each within 1e-9 N·m (the same code
@@ -275,7 +276,6 @@ def test_each_drivers_topics_into_the_node_from_its_recipe_equal_replay(played, 
     assert frames == {"franka": {"panda_link0"}, "ur": {"base"}, "lbr": {"lbr_link_0"}}[driver]
 
 
-@pytest.mark.realtime
 def test_the_urs_amperes_become_newton_metres(played):
     """The UR bag's effort is τ_m / k in A. With the scale, τ_ext is the synthetic stream's residual (its friction,
     at most 1.3 N·m per joint, plus noise, which the model trained on the same generator follows): below 3 N·m on
@@ -290,7 +290,6 @@ def test_the_urs_amperes_become_newton_metres(played):
     assert abs((1.0 - 1.0 / UR_TORQUE_CONSTANTS[1]) * gravity[1]) > 20.0
 
 
-@pytest.mark.realtime
 def test_stamped_outputs_pair_by_header_stamp_and_hold_replays_values(played):
     """ExactTime pairing of τ_ext, σ, the wrench, the wrench with its covariance and the flags of the Franka node:
     every τ_ext stamp has exactly one message of each (nothing unpaired); σ and the flags are replay's, the wrench
@@ -320,7 +319,6 @@ def test_stamped_outputs_pair_by_header_stamp_and_hold_replays_values(played):
     assert np.abs(np.sqrt(covariance[:, range(6), range(6)]) - result.wrench_std[result.valid]).max() <= 1e-9
 
 
-@pytest.mark.realtime
 def test_no_output_topic_without_a_header(played):
     """Every topic a running node advertises has a header, but the four deprecated ones (docs/ros.md) and ROS's own
     ``/rosout`` and ``/parameter_events``; the node advertises every topic of ``publishers.TOPICS``."""

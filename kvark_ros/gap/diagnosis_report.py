@@ -20,7 +20,9 @@ from kvark_ros.gap.known_load import gain_cells
 @dataclass
 class Diagnosis:
     """Result of ``diagnose``: the JSON document, the accepted terms and their raw θ, and the
-    held-out signals with the gap before/after (for plots), ``sample_interval`` s apart (None: unknown)."""
+    held-out signals with the gap before/after (for plots), ``sample_interval`` s apart (None: unknown);
+    ``relative_to``: the model the result is relative to where it is not the one diagnosed (a known-load
+    calibration: the robot with the drive gains it measured), None where it is."""
 
     result: dict
     terms: list[Term]
@@ -28,15 +30,17 @@ class Diagnosis:
     held: Signals
     held_after: np.ndarray
     sample_interval: float | None = None
+    relative_to: RobotModel | None = None
 
 
 def report(diag: Diagnosis, robot: RobotModel) -> str:
     r = diag.result
     lines = ["# Model-gap diagnosis", "",
              f"Held-out samples: {r['samples']['held_out']} (last {r['holdout']:.0%} of each recording).", "",
-             *([f"Relative to the model augmented by `{r['against']}`: the effects below are what changed since, "
-                f"chosen from {', '.join(r['library'])}; augmentation.yaml holds both.", ""]
-               if r.get("against") else []),
+             *([f"Relative to the model augmented by `{r['against']}`: the effects below are "
+                + ("the rest, selected on the free-motion recordings alone" if r.get("known_load_calibration")
+                   else "what changed since") + f", chosen from {', '.join(r['library'])}; augmentation.yaml holds "
+                f"both.", ""] if r.get("against") else []),
              f"Gap RMSE on the selection's signals ({r['gap_filtering']}) and on raw signals "
              f"({r['gap_raw'].get('filter', 'none')}), which published identification figures use.", "",
              "| joint | gap before (N·m) | gap after (N·m) | reduction | raw before | raw after |",
@@ -173,7 +177,9 @@ def augmentation(diag: Diagnosis, robot: RobotModel, robot_name: str = "") -> di
 
 def write_outputs(diag: Diagnosis, robot: RobotModel, out: Path, robot_name: str = "",
                   plots: bool = True) -> list[Path]:
-    """diagnosis.json, augmentation.yaml, report.md and (``plots``) the plots into ``out``; the paths written."""
+    """diagnosis.json, augmentation.yaml, report.md and (``plots``) the plots into ``out``, relative to ``robot`` (or
+    to ``diag.relative_to``); the paths written."""
+    robot = diag.relative_to or robot
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / "diagnosis.json", out / "augmentation.yaml", out / "report.md"]
     write_text_atomically(paths[0], json.dumps(diag.result, indent=2))

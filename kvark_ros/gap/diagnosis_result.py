@@ -108,6 +108,7 @@ def state(inputs: DiagnosisInputs, fitter: Fitter, terms: list[Term], fit: Fit, 
                                     for name in inputs.effects}, fitter.w),
         "flange_mass": flange_mass_regrouping(fitter.train, robot),
         "against": None if robot.augmentation is None else robot.augmentation.source,
+        "known_load_calibration": False,    # True: the gains of a known load, these effects from free motion alone
         "library": list(inputs.effects),
         "holdout": inputs.holdout, "samples": {"train": len(fitter.train), "held_out": len(fitter.held)},
         "seconds": round(time.perf_counter() - inputs.started, 1),

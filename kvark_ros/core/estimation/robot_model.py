@@ -173,6 +173,7 @@ class RobotModel:
         except RuntimeError as exc:
             raise RobotModelError(f"URDF could not be parsed: {exc}") from exc
         self.urdf_name = "the URDF" if urdf.lstrip().startswith("<") else f"the URDF {urdf}"
+        self._built_from = (urdf, tuple(joint_names), ee_frame, flange_frame, payload)
         missing = [name for name in joint_names if not full.existJointName(name)]
         if missing:
             raise RobotModelError(self._not_a_joint(full, missing[0]))
@@ -204,6 +205,10 @@ class RobotModel:
         self.payload: Payload | None = None
         if payload is not None:
             self.set_payload(payload)
+
+    def with_augmentation(self, augmentation: Augmentation | None) -> "RobotModel":
+        """The same robot (URDF, joints, frames, payload) with another ``augmentation`` instead of its own."""
+        return RobotModel(*self._built_from, augmentation)
 
     @classmethod
     def from_config(cls, config: "EstimatorConfig", augmentation: Augmentation | None = None,

@@ -27,13 +27,14 @@ from kvark_ros.core.config import ConfigError, EstimatorConfig, default_config_p
 from kvark_ros.core.files import check_output, staged_directory, write_text_atomically
 from kvark_ros.core.estimation.model_store import TrainedModel, save_model
 from kvark_ros.core.estimation.robot_model import RobotModel
-from kvark_ros.core.learning.training import INPUT_MODES, train_model
+from kvark_ros.core.learning.training import HOLDOUT, train_model
 from kvark_ros.io.recorded_inputs import read_inputs
 from kvark_ros.tools.acceptance import COVERAGE_RANGE, ORACLE_LIMIT, RMSE_LIMIT
 from kvark_ros.tools.evaluate import Setup, dask_client, decoded, evaluate_bags, loaded, merge
 from kvark_ros.tools.sim_bags import (AUGMENTED_OBSERVERS, FULL, QUICK, TEST_SCENARIOS, BenchmarkPlan, reuse_bags,
                                       simulate_bags, training_clocks)
 from kvark_ros.tools.report import metrics_table
+from kvark_ros.tools.train import add_residual_inputs_option
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -200,9 +201,7 @@ def add_parser(subparsers: SubParsers) -> None:
                            "Jᵀ F: a stiffly position-controlled arm; 1 s holds, one every 3 s, along the wrench axes "
                            "in turn), augmented model: τ_ext RMSE during and after the pushes, contact delay "
                            "(default 0: off; e.g. 40)")
-    real.add_argument("--residual-inputs", choices=INPUT_MODES, default="auto",
-                      help="inputs of each joint's KMP residual in both trainings, as kvark train's (default auto: "
-                           "chosen per joint by held-out log-likelihood)")
+    add_residual_inputs_option(real, f"the last {HOLDOUT:.0%} of the training part, in both trainings")
     real.add_argument("--no-baselines", action="store_true", help="skip the learned baselines (faster)")
     real.add_argument("--no-plots", action="store_true",
                       help="skip the figures, the held-out part's and the diagnosis' (report.md and the JSON only)")

@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from kvark_ros.core.estimation.augmentation import load_augmentation
 from kvark_ros.core.config import EstimatorConfig, load_config
@@ -58,6 +58,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def add_residual_inputs_option(parser: Any, judged_on: str) -> None:
+    """``--residual-inputs`` (``train_model``'s ``residual_inputs``) on a parser or an argument group, as train and
+    benchmark --real take it; ``judged_on``: the samples auto chooses by."""
+    parser.add_argument("--residual-inputs", choices=INPUT_MODES, default="auto",
+                        help="inputs of each joint's KMP residual: auto (default) chooses per joint between q̇ alone "
+                             "(qd, the paper's model), q̇ with the joint position (qd_q) and q̇ with the model's "
+                             f"gravity torque (qd_g) by log-likelihood on {judged_on.replace('%', '%%')}; or one of "
+                             "them for every "
+                             "joint")
+
+
 def add_parser(subparsers: SubParsers) -> None:
     parser = subparsers.add_parser(
         "train", help="train the residual models and filter tuning from contact-free bags",
@@ -75,11 +86,7 @@ def add_parser(subparsers: SubParsers) -> None:
                              "config's model_augmentation; '' for none); copied into the model directory")
     parser.add_argument("--no-baselines", action="store_true",
                         help="skip the GMR-GP, sparse-GP and MLP baselines (faster)")
-    parser.add_argument("--residual-inputs", choices=INPUT_MODES, default="auto",
-                        help="inputs of each joint's KMP residual: auto (default) chooses per joint between q̇ alone "
-                             "(qd, the paper's model), q̇ with the joint position (qd_q) and q̇ with the model's "
-                             "gravity torque (qd_g) by log-likelihood on the last --holdout of every bag; or one "
-                             "of them for every joint")
+    add_residual_inputs_option(parser, "the last --holdout of every bag")
     parser.add_argument("--seed", type=int, default=0, help="random seed for the hold-out split and fits")
     parser.add_argument("--jobs", type=positive_int, default=None, metavar="N",
                         help="worker processes for the joints' fits, each with one BLAS thread (default: every "

@@ -77,6 +77,16 @@ def test_the_table_is_each_commands_own_help_line():
         assert build_parser(command.name).format_help() == listing, command.name
 
 
+@pytest.mark.parametrize("command", [command.name for command in available_commands()])
+def test_every_commands_help_prints_and_exits_0(command, capsys):
+    """``kvark COMMAND --help`` formats every option's help: a ``%`` in a help string not written ``%%`` made
+    argparse raise a TypeError instead of printing it."""
+    with pytest.raises(SystemExit) as exit_info:
+        main([command, "--help"])
+    assert exit_info.value.code == 0
+    assert capsys.readouterr().out.startswith(f"usage: kvark {command}")
+
+
 def test_help_imports_no_command_module_and_no_heavy_package():
     loaded = _loaded_after(["--help"])
     assert not [name for name in loaded if name.split(".")[0] in HEAVY]

@@ -207,7 +207,8 @@ class RobotModel:
             self.set_payload(payload)
 
     def with_augmentation(self, augmentation: Augmentation | None) -> "RobotModel":
-        """The same robot (URDF, joints, frames, payload) with another ``augmentation`` instead of its own."""
+        """The same robot (URDF, joints, frames, the payload it was built with) with another ``augmentation`` instead
+        of its own."""
         return RobotModel(*self._built_from, augmentation)
 
     @classmethod

@@ -32,8 +32,8 @@ nuisance parameters and drive_gain on every joint is in every selection. What th
 fit, the drive gains; every other effect is then selected again on the free-motion recordings alone, on the robot
 with those gains (as against a calibrated model, from the whole library but drive_gain): fitted with the loaded
 recording, link inertia and friction also took up its misfit (on the real UR10e the free-motion figures lost 0.13
-N·m to it). Without a known load the report says the gains are unidentified and how far a payload's mass may be off
-because of them.
+N·m to it). A gain that fit wanted beyond its prior stays unidentified, and that record leads the warnings. Without a
+known load the report says the gains are unidentified and how far a payload's mass may be off because of them.
 
 Against a calibrated model the library is what changes between runs of one robot (``CHANGES_BETWEEN_RUNS``: a load,
 friction, torque offsets); links, armature, gains, ripple and encoders are its construction, calibrated with it.
@@ -63,7 +63,7 @@ from kvark_ros.gap.diagnosis_result import DiagnosisInputs, state
 from kvark_ros.gap.effects import LINK_PRIOR, Priors, Signals, flange_parameter_map, link_prior_scale, signals
 from kvark_ros.gap.fitting import Fitter
 from kvark_ros.gap.known_load import KnownLoad, calibrate_with, load_signals
-from kvark_ros.gap.plausibility import prior_summary
+from kvark_ros.gap.plausibility import beyond_prior_warning, prior_summary
 from kvark_ros.gap.priors import FLAGS, MEASUREMENT_WIDTHS, robot_priors
 from kvark_ros.gap.selection import per_joint, rmse, select
 from kvark_ros.io.recorded_inputs import load_recordings
@@ -134,6 +134,12 @@ def diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: fl
         again = _diagnose(calibrated, segments, holdout, [name for name in effects if name != "drive_gain"], log,
                           priors, None, new_load=False)
         again.result["known_load_calibration"] = True
+        # The gains the fit with the load wanted beyond their prior (left unidentified) lead the warnings.
+        carried = [{**record, "known_load": True} for record in found.result["beyond_priors"]
+                   if record["effect"] == "drive_gain"]
+        again.result["beyond_priors"] = [*carried, *again.result["beyond_priors"]]
+        again.result["warnings"] = [*(beyond_prior_warning(record, priors, robot.joint_names) for record in carried),
+                                    *again.result["warnings"]]
         return replace(again, relative_to=calibrated)
 
 

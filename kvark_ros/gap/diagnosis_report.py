@@ -53,7 +53,9 @@ def report(diag: Diagnosis, robot: RobotModel) -> str:
     lines += [f"| mean | {r['gap_before']['joint_rmse_mean']:.4f} | {r['gap_after']['joint_rmse_mean']:.4f} | | "
               f"{raw['before_mean']:.4f} | {raw['after_mean']:.4f} |", "", "## Warnings", "",
               *(["What the data want beyond a prior comes first, the explanation that explains most of the held-out "
-                 "gap first; then the parameters at a bound of their prior.", ""] if r["warnings"] else [])]
+                 "gap first" + ("; a drive gain the fit with the known load wanted beyond its prior before them"
+                                if r.get("known_load_calibration") else "")
+                 + "; then the parameters at a bound of their prior.", ""] if r["warnings"] else [])]
     lines += [f"- {warning}" for warning in r["warnings"]] or [
         "None: no parameter sits at a bound of its prior, and no effect wants a value beyond it."]
     lines += ["", *drive_gains_section(r["drive_gains"], robot.joint_names), "", *_priors_table(r["priors"])]

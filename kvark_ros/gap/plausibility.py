@@ -91,7 +91,8 @@ def plausibility_warnings(terms: Sequence[Term], thetas: Sequence[np.ndarray], p
 def beyond_prior_warning(record: dict, priors: Priors, joint_names: Sequence[str]) -> str:
     """The sentence of one ``admissible.beyond_priors`` record: which effect wants which value, how far beyond which
     prior (× its bound), what it would explain, its weaker look-alikes, and what to change: the flag that allows it
-    (for a drive gain where τ_m is not a link-side sensor's, also the known-load calibration that measures it)."""
+    (for a drive gain where τ_m is not a link-side sensor's, also the known-load calibration that measures it). A
+    record marked ``known_load`` comes from the fit with a known load, where the gain is left unidentified."""
     name, bound, wanted = record["effect"], record["bound"], record["wanted"]
     where = "" if record["joint"] < 0 else f" on {joint_names[record['joint']]}"
     if name == "drive_gain":
@@ -108,13 +109,19 @@ def beyond_prior_warning(record: dict, priors: Priors, joint_names: Sequence[str
                        for other in record.get("look_alikes", []))
     far = (f", far beyond it: check the robot's {name.replace('_', ' ')} before widening it"
            if record["ratio"] > FAR_BEYOND else "")
+    known = bool(record.get("known_load"))     # from the fit with a known load (gap.diagnose): left unidentified
     measure = (" or measure the gains with a known mass at the flange (--known-load MASS BAG)"
-               if name == "drive_gain" and priors.torque_measurement != "link_torque_sensor" else "")
-    return (f"{name}{where} needs {want}, {record['ratio']:.1f}× its prior {_bound(name, bound)} "
-            f"({priors.sources.get(name, 'prior')}){far}; it would cut the held-out gap (N·m) of {helped}. "
-            + (f"Look-alikes that explain less, beyond their priors too: {weaker}. " if weaker else "")
-            + "Not accepted, and no look-alike outside its own prior stands in for it: if the value is physical, "
-            f"pass {_flag(name, wanted, bound)}{measure}; otherwise an effect the library lacks is seen through it")
+               if name == "drive_gain" and priors.torque_measurement != "link_torque_sensor" and not known else "")
+    verdict = ("Not accepted: the gain stays unidentified (its prior). If the value is physical, "
+               f"pass {_flag(name, wanted, bound)}; otherwise another effect is seen through it in the recordings "
+               "with the load (e.g. friction at velocity reversals, which the smooth friction effects do not follow)"
+               if known else "Not accepted, and no look-alike outside its own prior stands in for it: if the value "
+               f"is physical, pass {_flag(name, wanted, bound)}{measure}; otherwise an effect the library lacks is "
+               "seen through it")
+    return (("with the known load, " if known else "") + f"{name}{where} needs {want}, {record['ratio']:.1f}× its "
+            f"prior {_bound(name, bound)} ({priors.sources.get(name, 'prior')}){far}; it would cut the held-out gap "
+            f"(N·m{', the recordings with the load among them' if known else ''}) of {helped}. "
+            + (f"Look-alikes that explain less, beyond their priors too: {weaker}. " if weaker else "") + verdict)
 
 
 def prior_summary(result: Mapping[str, Any]) -> dict[str, Any]:

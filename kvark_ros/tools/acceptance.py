@@ -208,7 +208,7 @@ def contact_delay_lines(rows: Sequence[Mapping[str, Any]], group: str) -> list[s
 
 def prior_line(robots: Sequence[Mapping[str, Any]], group: str) -> list[str]:
     """No effect outside its prior without a warning, over every diagnosis of ``robots``: the free-motion (or
-    known-load) calibration and the payload's identification run against it (``gap.plausibility.prior_summary``)."""
+    known-load) calibration and the payload scene against it (``gap.plausibility.prior_summary``)."""
     records = []
     for result in robots:
         augmentation = result.get("augmentation", {})
@@ -218,8 +218,8 @@ def prior_line(robots: Sequence[Mapping[str, Any]], group: str) -> list[str]:
         return []
     largest = max((r["largest_prior_use"] for r in records if r["largest_prior_use"] is not None), default=None)
     unwarned = [name for r in records for name in r["unwarned"]]
-    return [f"- {group}: effects against their priors over {len(records)} diagnoses (the calibration, and the "
-            f"payload's identification run against it): {sum(r['effects'] for r in records)} named, the largest using "
+    return [f"- {group}: effects against their priors over {len(records)} diagnoses (the calibration, and the payload "
+            f"scene against the calibrated model): {sum(r['effects'] for r in records)} named, the largest using "
             f"{'–' if largest is None else f'{largest:.0%}'} of its prior, {sum(len(r['at_bound']) for r in records)} "
             f"at a bound (each a warning); {sum(r['beyond_priors'] for r in records)} explanations wanted beyond a "
             f"prior (each a warning); outside a prior without a warning: {', '.join(unwarned) or 'none'}: "
@@ -227,7 +227,7 @@ def prior_line(robots: Sequence[Mapping[str, Any]], group: str) -> list[str]:
 
 
 def flange_mass_line(robots: Sequence[Mapping[str, Any]], group: str) -> list[str]:
-    """The payload's mass, diagnosed on its identification recording against the calibrated model (after the known-load
+    """The payload's mass, diagnosed on the payload scene against the calibrated model (after the known-load
     calibration on motor-current arms): named with its mass within ``FLANGE_MASS_TOLERANCE`` on every robot, and the
     drawn mass inside its 95 % interval on all but ``INTERVAL_MISSES`` of them (rounded up: one miss in six; records
     written before the intervals were kept count as not holding it)."""

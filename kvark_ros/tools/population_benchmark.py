@@ -6,13 +6,13 @@ one worker process per core, pinned to its core): simulate its free-motion train
 and collision test bags (``sim_bags.simulate_bags``), train on the nominal model, diagnose and train on the
 augmented model (``train_on_diagnosis``, as ``benchmark --augment``), and replay kvark, kf, momentum and the oracle
 (which gets the robot's plant file) on the nominal model and kvark, kf, momentum on the augmented one
-(``evaluate_task``, the task ``kvark evaluate`` runs), and diagnose an excitation recording carrying its payload
-against the augmented model (``flange_mass``: is the new load named a payload, of the drawn mass?). The figures are
-then pooled into distributions over robots × scenes ("cells"): median, 90th percentile (the value 90 % of the cells
-do better than) and worst, per arm class and pooled (coverage also over the joint samples in motion alone), and
-checked against ``acceptance_lines`` (and the contact flag's delay from the static band, the payload's mass, the
-effects against their priors). ``results.json`` and ``report.md`` go into --out (``staged_directory``), each
-robot's bags, plant, models and log under ``robots/<arm>_<index>``.
+(``evaluate_task``, the task ``kvark evaluate`` runs), and diagnose its payload scene against the augmented model
+(``flange_mass``: is the new load named a payload, of the drawn mass?). The figures are then pooled into
+distributions over robots × scenes ("cells"): median, 90th percentile (the value 90 % of the cells do better than)
+and worst, per arm class and pooled (coverage also over the joint samples in motion alone), and checked against
+``acceptance_lines`` (and the contact flag's delay from the static band, the payload's mass, the effects against
+their priors). ``results.json`` and ``report.md`` go into --out (``staged_directory``), each robot's bags,
+plant, models and log under ``robots/<arm>_<index>``.
 """
 from __future__ import annotations
 
@@ -79,7 +79,7 @@ def run_robot(robot: PopulationRobot, plan: BenchmarkPlan, folder: str) -> dict[
     from kvark_ros.gap.diagnose import train_on_diagnosis
     from kvark_ros.gap.known_load import KnownLoad
     from kvark_ros.io.recorded_inputs import read_inputs
-    from kvark_ros.tools.sim_bags import simulate_bags, simulate_known_load, simulate_payload_identification
+    from kvark_ros.tools.sim_bags import simulate_bags, simulate_known_load
     from kvark_ros.tools.evaluate import Setup, evaluate_task
 
     _pin_to_core()
@@ -125,9 +125,7 @@ def run_robot(robot: PopulationRobot, plan: BenchmarkPlan, folder: str) -> dict[
                 for observer in AUGMENTED_OBSERVERS:
                     scenes[name]["augmented"][observer] = _figures(
                         evaluate_task(augmented, str(bag.resolve()), observer).metrics)
-            identification = simulate_payload_identification(robot.setup, plan, out / "bags", sim_seed, log,
-                                                             robot.payload_plant())
-            augmentation["flange_mass"] = flange_mass(config, out, identification, robot.payload_kg, log)
+            augmentation["flange_mass"] = flange_mass(config, out, test_bags["payload"], robot.payload_kg, log)
             augmentation["flange_mass"]["known_load"] = known is not None
         except Exception as exc:       # a diagnosis that fails leaves the nominal figures standing, and says why
             augmentation = {"error": f"{type(exc).__name__}: {exc}"}
@@ -142,10 +140,9 @@ def run_robot(robot: PopulationRobot, plan: BenchmarkPlan, folder: str) -> dict[
 
 def flange_mass(config: Any, folder: Path, payload_bag: Path, true_mass: float,
                 log: Callable[[str], None]) -> dict[str, Any]:
-    """``kvark diagnose --against`` the robot's diagnosed model on ``payload_bag`` (its payload identification
-    recording, ``sim_bags.simulate_payload_identification``): whether the new load is named a payload, and its mass
-    change at the flange (kg, the identifiable combination, ``gap.plausibility``) with its 95 % half-width against the
-    drawn payload's mass. The diagnosis goes to ``folder/payload_diagnosis``."""
+    """``kvark diagnose --against`` the robot's diagnosed model on its payload scene: whether the new load is named
+    a payload, and its mass change at the flange (kg, the identifiable combination, ``gap.plausibility``) with its
+    95 % half-width against the drawn payload's mass. The diagnosis goes to ``folder/payload_diagnosis``."""
     from kvark_ros.core.estimation.augmentation import load_augmentation
     from kvark_ros.core.estimation.robot_model import RobotModel
     from kvark_ros.gap.diagnose import diagnose
@@ -255,7 +252,7 @@ def write_report(out: Path, results: Mapping[str, Any]) -> None:
             "RMSE: joint RMSE (mean over joints), N·m; `_aug`: on the diagnosed (augmented) model. p90: the value "
             "90 % of the cells do better than (for coverage the 10th percentile).", "", "## Robots", "",
             "| robot | plant | effects named by the diagnosis | held-out gap (N·m) | drive gains ± 95 % (drawn) | "
-            "payload's identification run against the diagnosed model: named (kg ± 95 %, drawn kg) | time (s) |",
+            "payload scene against the diagnosed model: named (kg ± 95 %, drawn kg) | time (s) |",
             "|---|---|---|---|---|---|---|"]
     for result in results["robots"]:
         augmentation = result["augmentation"]

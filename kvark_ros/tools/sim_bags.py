@@ -1,7 +1,6 @@
 """The simulated data of ``kvark benchmark``: how much (``BenchmarkPlan``), when the training recordings start
 (``training_clocks``), the bags themselves (``simulate_bags``; a motor-current robot's known-load calibration
-recording, ``simulate_known_load``; the payload's identification recording, ``simulate_payload_identification``) and
-their reuse on a forced rerun (``reuse_bags``).
+recording, ``simulate_known_load``) and their reuse on a forced rerun (``reuse_bags``).
 Shared by the single-robot benchmark (``tools.benchmark``) and the population (``tools.population_benchmark``).
 """
 from __future__ import annotations
@@ -19,8 +18,6 @@ TEST_SCENARIOS = ("payload", "contact", "collision")
 AUGMENTED_OBSERVERS = ("kvark", "kf", "momentum")
 KNOWN_LOAD_LABEL = "calibration_known_load"
 KNOWN_LOAD_SEED = 50           # its noise and clock seed: the robot's seed + this (training: + 11…, tests: + 100…)
-PAYLOAD_ID_LABEL = "payload_identification"
-PAYLOAD_ID_SEED = 150          # its motion, noise and clock seed: the robot's seed + this
 
 
 @dataclass(frozen=True)
@@ -90,24 +87,6 @@ def simulate_known_load(robot: str, plan: BenchmarkPlan, folder: Path, seed: int
                                  start_time=clock, motion_seed=seed + plan.train_seeds[0]))
         log(f"[benchmark] simulated {KNOWN_LOAD_LABEL} ({plan.train_duration:g} s, the motion of "
             f"train_excitation_{plan.train_seeds[0]} with the known load) in {time.perf_counter() - started:.1f} s")
-    return path
-
-
-def simulate_payload_identification(robot: str, plan: BenchmarkPlan, folder: Path, seed: int, log,
-                                    plant: Mapping[str, Any]) -> Path:
-    """The payload's identification recording under ``folder`` (reused if there): an excitation of its own seed and
-    start on the plant clock (drawn, as the tests'), ``plan.train_duration`` s, carrying the payload (``plant``: the
-    robot's plant with it): what a user records to read a tool's mass, as the vendors' payload identifications move
-    the arm through poses, where the payload scene's motion (a test of the observers under a load) may not tell the
-    payload's mass from a change of the torque offsets (docs/results.md, the population section)."""
-    from kvark_ros.sim.scenarios import simulate
-    path = folder / PAYLOAD_ID_LABEL
-    if not path.exists():
-        started = time.perf_counter()
-        folder.mkdir(parents=True, exist_ok=True)
-        write_run(path, simulate(robot, "excitation", seed + PAYLOAD_ID_SEED, plan.train_duration, plant))
-        log(f"[benchmark] simulated {PAYLOAD_ID_LABEL} ({plan.train_duration:g} s, an excitation carrying the payload) "
-            f"in {time.perf_counter() - started:.1f} s")
     return path
 
 

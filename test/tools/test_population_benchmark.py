@@ -266,10 +266,10 @@ def test_the_prior_line_fails_only_on_an_effect_outside_its_prior_without_a_warn
               _diagnosed(_robot(1, "ur10", scene), _summary(5, 0.99, ["armature"], [], beyond=2),
                          _summary(2, 0.30, [], []))]
     line = next(line for line in aggregate(robots)["pooled"]["acceptance"] if "against their priors" in line)
-    assert line == ("- pooled: effects against their priors over 4 diagnoses (the calibration, and the payload's "
-                    "identification run against it): 12 named, the largest using 99% of its prior, 1 at a bound "
-                    "(each a warning); 2 explanations wanted beyond a prior (each a warning); outside a prior without "
-                    "a warning: none: pass")
+    assert line == ("- pooled: effects against their priors over 4 diagnoses (the calibration, and the payload scene "
+                    "against the calibrated model): 12 named, the largest using 99% of its prior, 1 at a bound (each a "
+                    "warning); 2 explanations wanted beyond a prior (each a warning); outside a prior without a "
+                    "warning: none: pass")
     robots[1]["augmentation"]["flange_mass"]["priors"] = _summary(2, 1.4, [], ["torque_offset"])
     line = next(line for line in aggregate(robots)["pooled"]["acceptance"] if "against their priors" in line)
     assert "the largest using 140% of its prior" in line and line.endswith("without a warning: torque_offset: FAIL")

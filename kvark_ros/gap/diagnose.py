@@ -125,7 +125,7 @@ def diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: fl
     flange = flange_link_parameters(robot.model, robot.flange_frame_id)
     priors = robot_priors(robot, replace(priors, flange_mass=float(flange[0])))
     with single_threaded_blas():  # hundreds of small least-squares fits
-        found = _diagnose(robot, segments, holdout, effects, log, priors, known_load)
+        found = _diagnose(robot, segments, holdout, effects, log, priors, known_load, robot.augmentation is not None)
         if known_load is None:
             return found
         calibrated = robot.with_augmentation(measured_gains(found, robot, known_load))
@@ -170,10 +170,9 @@ def body_fitter(robot: RobotModel, train: Signals, held: Signals, priors: Priors
 
 
 def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: float, effects: Sequence[str],
-              log: Callable[[str], None], priors: Priors, load: KnownLoad | None,
-              new_load: bool | None = None) -> Diagnosis:
-    """``diagnose``'s selection on ``robot``; ``new_load`` (default: against a calibrated model) prefers a payload to
-    link changes that explain no more (``selection.payload_first``)."""
+              log: Callable[[str], None], priors: Priors, load: KnownLoad | None, new_load: bool) -> Diagnosis:
+    """``diagnose``'s selection on ``robot``; ``new_load`` (against a calibrated model, but not in a known-load
+    calibration's second pass) prefers a payload to link changes that explain no more (``selection.payload_first``)."""
     if not 0.05 <= holdout <= 0.9:
         raise ValueError(f"holdout must be in [0.05, 0.9], got {holdout}")
     unknown = sorted(set(effects) - set(EFFECT_NAMES))
@@ -188,7 +187,6 @@ def _diagnose(robot: RobotModel, segments: Sequence[EstimatorInputs], holdout: f
     if load is not None:
         calibrate_with(fitter, load)
     log(f"[diagnose] held-out gap per joint before (N·m): {per_joint(rmse(held.gap), robot.joint_names)}")
-    new_load = robot.augmentation is not None if new_load is None else new_load
     terms, fit = select(fitter, effects, robot.joint_names, log, new_load)
     return state(inputs, fitter, terms, fit, log, DECIMATE_DT)
 

@@ -65,8 +65,7 @@ def add_residual_inputs_option(parser: Any, judged_on: str) -> None:
                         help="inputs of each joint's KMP residual: auto (default) chooses per joint between q̇ alone "
                              "(qd, the paper's model), q̇ with the joint position (qd_q) and q̇ with the model's "
                              f"gravity torque (qd_g) by log-likelihood on {judged_on.replace('%', '%%')}; or one of "
-                             "them for every "
-                             "joint")
+                             "them for every joint")
 
 
 def add_parser(subparsers: SubParsers) -> None:

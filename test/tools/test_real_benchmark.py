@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from kvark_ros.cli import main
-from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.core.estimation.inputs import EstimatorInputs
+from kvark_ros.core.estimation.model_store import load_model
 from kvark_ros.io import write_run
 from kvark_ros.tools.real_benchmark import split
 

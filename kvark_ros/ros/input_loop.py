@@ -35,6 +35,7 @@ from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.signals import SignalHandlerGuardCondition
+from rclpy.task import Future
 
 if TYPE_CHECKING:
     from rclpy.node import Node
@@ -151,6 +152,7 @@ class ServiceThread:
         self.failure: BaseException | None = None
         self._context = node.context
         self._on_end = on_end
+        self._stopped = Future()
         self._thread = threading.Thread(target=self._spin, name="kvark_services", daemon=True)
 
     def start(self) -> None:
@@ -158,7 +160,7 @@ class ServiceThread:
 
     def _spin(self) -> None:
         try:
-            self.executor.spin()
+            self.executor.spin_until_future_complete(self._stopped)
         except ExternalShutdownException:
             return
         except BaseException as exc:
@@ -166,14 +168,18 @@ class ServiceThread:
             # (ros2/rclpy#398): a stop, not a fault.
             if self._context.ok() or not isinstance(exc, RuntimeError):
                 self.failure = exc
-        if self.failure is not None or self._context.ok():
+        if self.failure is not None or (self._context.ok() and not self._stopped.done()):
             self._on_end()
 
     def stop(self, timeout: float = 5.0) -> None:
-        """Shut the executor down and wait up to ``timeout`` s for the thread."""
-        self.executor.shutdown(timeout_sec=0.0)
+        """End the thread's spin, wait up to ``timeout`` s for it, then shut the executor down. In that order:
+        rclpy 7.1's ``Executor.shutdown`` destroys the executor's guard conditions at once, whatever its timeout,
+        and a spin between its shutdown check and its next wait set then fails on them (``AttributeError``, seen
+        as exit code 1 on SIGTERM)."""
+        self._stopped.set_result(True)                # wakes the executor: its spin returns at this wake
         if self._thread.is_alive():
             self._thread.join(timeout)
+        self.executor.shutdown(timeout_sec=0.0)
 
 
 def spin(node: Node) -> None:

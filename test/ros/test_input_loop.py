@@ -126,3 +126,39 @@ def test_a_shutdown_ends_both_threads_without_an_error(domain):
     assert not rclpy.ok() and time.monotonic() - started < 5.0
     node.destroy_node()
 
+
+
+def test_a_stop_while_the_executor_builds_its_wait_set_ends_the_thread_without_a_fault(domain):
+    """The race behind a node's exit code 1 on SIGTERM (a run of the suite on 2 busy cores): the service thread's
+    executor past its shutdown check, gathering the entities of its next wait set, when ``stop`` comes. Made here
+    on demand: the executor's ``get_nodes`` (called right after that check) holds once armed until the executor is
+    shut down, or 0.5 s. ``stop`` must end the spin before it shuts the executor down (rclpy 7.1's shutdown
+    destroys the guard conditions at once, and a spin that goes on then fails on them): no failure, no ``on_end``,
+    the thread ended."""
+    node = _node("kvark_input_loop_stop_race")
+    node.create_timer(0.005, lambda: None)                    # keeps the executor going round its loop
+    ended: list[bool] = []
+    services = ServiceThread(node, on_end=lambda: ended.append(True))
+    armed, inside, shut = threading.Event(), threading.Event(), threading.Event()
+    get_nodes, shutdown = services.executor.get_nodes, services.executor.shutdown
+
+    def held_get_nodes():
+        if armed.is_set() and not inside.is_set():
+            inside.set()
+            shut.wait(0.5)
+        return get_nodes()
+
+    def marked_shutdown(*args, **kwargs):
+        result = shutdown(*args, **kwargs)
+        shut.set()
+        return result
+
+    services.executor.get_nodes, services.executor.shutdown = held_get_nodes, marked_shutdown
+    services.start()
+    armed.set()
+    assert inside.wait(10.0), "the executor never came round its loop"
+    services.stop()
+    time.sleep(0.1)                                           # an old-order stop's fault lands after stop returns
+    assert services.failure is None, repr(services.failure)
+    assert not ended and "kvark_services" not in {thread.name for thread in threading.enumerate()}
+    node.destroy_node()

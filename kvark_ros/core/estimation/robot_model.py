@@ -202,6 +202,7 @@ class RobotModel:
         self.data = self.model.createData()
         self.terms = LiveTerms(self.data.g, self.data.tau, self.data.C, self.data.oMf[self.ee_frame_id].rotation)
         self._zero = np.zeros(self.model.nv)
+        self._below_diagonal = np.tril_indices(self.model.nv, -1)
         self.payload: Payload | None = None
         if payload is not None:
             self.set_payload(payload)
@@ -296,9 +297,11 @@ class RobotModel:
 
     def mass_matrix(self, q: np.ndarray) -> np.ndarray:
         """M(q): (n, n) kg·m², symmetric."""
-        pin.crba(self.model, self.data, self._true_q(q))
-        upper = self.data.M
-        return np.triu(upper) + np.triu(upper, 1).T
+        pin.crba(self.model, self.data, self._true_q(q))    # fills M's upper triangle
+        matrix = self.data.M.copy()
+        matrix[self._below_diagonal] = matrix.T[self._below_diagonal]
+        matrix += 0.0       # as triu(M) + triu(M, 1)ᵀ: a −0.0 becomes +0.0, so the bits are that sum's
+        return matrix
 
     def momentum_terms(self, q: np.ndarray, qd: np.ndarray, tau_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Generalized momentum and its model input.
